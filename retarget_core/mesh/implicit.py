@@ -1,0 +1,35 @@
+"""Implicit shapes (signed distance, negative inside) used to build closed hand surfaces.
+
+All functions take points (N, 3) in metres and return (N,) values. The tapered capsule is a
+bound rather than an exact distance, which is all a level-set extraction needs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def tapered_capsule(points: np.ndarray, a: np.ndarray, b: np.ndarray, radius_a: float, radius_b: float) -> np.ndarray:
+    """Segment a-b swept by a sphere whose radius varies linearly from radius_a to radius_b."""
+    ab = np.asarray(b, float) - np.asarray(a, float)
+    t = np.clip((points - a) @ ab / max(float(ab @ ab), 1e-30), 0.0, 1.0)
+    closest = a + t[:, None] * ab
+    return np.linalg.norm(points - closest, axis=1) - (radius_a + t * (radius_b - radius_a))
+
+
+def rounded_box(points: np.ndarray, center: np.ndarray, rotation: np.ndarray, half_extents, rounding: float) -> np.ndarray:
+    """Box with the given centre, rotation (3, 3, columns = box axes in world) and half
+    extents (3,), its edges rounded with radius ``rounding`` (the outer size is kept)."""
+    local = (points - center) @ rotation
+    q = np.abs(local) - (np.asarray(half_extents, float) - rounding)
+    outside = np.linalg.norm(np.maximum(q, 0.0), axis=1)
+    inside = np.minimum(q.max(axis=1), 0.0)
+    return outside + inside - rounding
+
+
+def smooth_union(d1: np.ndarray, d2: np.ndarray, k: float) -> np.ndarray:
+    """Union of two shapes blended over a band of width ``k`` (metres); k = 0 is a plain min."""
+    if k <= 0:
+        return np.minimum(d1, d2)
+    h = np.clip(0.5 + 0.5 * (d2 - d1) / k, 0.0, 1.0)
+    return d2 + (d1 - d2) * h - k * h * (1.0 - h)
