@@ -45,8 +45,9 @@ class Pose:
 class SurfaceBinding:
     """Precomputed skinning data of P surface points; build with :meth:`Kinematics.bind`.
 
-    y: (J, P, 4) weighted homogeneous rest positions per joint; z: (J, P, 3) weighted rest
-    normals per joint; weight_sub: (J, P) summed weights of each joint's subtree.
+    y: (J, 4, P) weighted homogeneous rest positions per joint (row 3 holds the weights);
+    z: (J, 3, P) weighted rest normals per joint; weight_sub: (J, P) summed weights of each
+    joint's subtree.
     """
 
     y: np.ndarray
@@ -55,7 +56,7 @@ class SurfaceBinding:
 
     @property
     def n_points(self) -> int:
-        return self.y.shape[1]
+        return self.y.shape[2]
 
 
 class Kinematics:
@@ -160,11 +161,11 @@ class Kinematics:
     def _binding(self, weights: np.ndarray, rest_points: np.ndarray, rest_normals: np.ndarray) -> SurfaceBinding:
         """weights: (P, J); rest_points, rest_normals: (P, 3)."""
         wt = np.ascontiguousarray(weights.T)  # (J, P)
-        y = np.empty((self.n_joints, len(rest_points), 4))
-        y[:, :, :3] = wt[:, :, None] * rest_points[None]
-        y[:, :, 3] = wt
-        z = wt[:, :, None] * rest_normals[None]
-        return SurfaceBinding(y=y, z=z, weight_sub=self.subtree @ wt)
+        y = np.empty((self.n_joints, 4, len(rest_points)))
+        y[:, :3, :] = wt[:, None, :] * rest_points.T[None]
+        y[:, 3, :] = wt
+        z = wt[:, None, :] * rest_normals.T[None]
+        return SurfaceBinding(y=y, z=np.ascontiguousarray(z), weight_sub=self.subtree @ wt)
 
     def bind(self, points: SurfacePoints, mesh: str = "surface") -> SurfaceBinding:
         """Skinning data of surface points given as (face, barycentric) on ``mesh``."""
@@ -193,48 +194,77 @@ class Kinematics:
     def points(self, pose: Pose | np.ndarray, binding: SurfaceBinding) -> np.ndarray:
         """(P, 3) world positions of bound surface points."""
         pose = self._as_pose(pose)
-        # sum_j y_j @ M_j^T over joints and homogeneous coordinates in one product.
-        mt = pose.skin[:, :3, :].transpose(0, 2, 1).reshape(-1, 3)
-        return binding.y.transpose(1, 0, 2).reshape(binding.n_points, -1) @ mt
+        # sum over joints j and homogeneous coordinates b of M_j[a, b] y_j[b, p], as one product.
+        m = pose.skin[:, :3, :].transpose(1, 0, 2).reshape(3, -1)  # (3, J*4)
+        return (m @ binding.y.reshape(-1, binding.n_points)).T
 
-    def points_jacobian(self, pose: Pose | np.ndarray, binding: SurfaceBinding):
-        """Positions (P, 3) and their Jacobian (P, 3, D) with respect to every DOF."""
-        pose = self._as_pose(pose)
-        n_points = binding.n_points
-        contrib = binding.y @ pose.skin[:, :3, :].transpose(0, 2, 1)  # (J, P, 3)
-        sub = (self.subtree @ contrib.reshape(self.n_joints, -1)).reshape(self.n_joints, n_points, 3)
-        positions = sub[0]  # joint 0 is the only root (Rig.validate), so its subtree is everything
-        sub_d = sub[self.dof_joint]  # (D, P, 3)
-        w_d = binding.weight_sub[self.dof_joint]  # (D, P)
+    def _subtree_sums(self, transforms: np.ndarray, weighted: np.ndarray) -> np.ndarray:
+        """Per joint a, sum over its subtree of transforms[j] @ weighted[j]: (J, R, P)."""
+        contrib = transforms @ weighted  # (J, R, P)
+        n_joints, rows, n_points = contrib.shape
+        return (self.subtree @ contrib.reshape(n_joints, -1)).reshape(n_joints, rows, n_points)
+
+    def _lever_maps(self, pose: Pose) -> np.ndarray:
+        """(D, 3, 4) maps from a subtree's [sum of skinned points; sum of weights] to the
+        derivative of a point: [K_d | -omega_d x o_d] for rotations, [0 | axis_d] for translations."""
         axis, origin = pose.dof_axis, pose.dof_origin
-        lever = sub_d - w_d[:, :, None] * origin[:, None, :]
-        jac = np.cross(axis[:, None, :], lever)
+        maps = np.zeros((self.n_dofs, 3, 4))
+        maps[:, 0, 1], maps[:, 0, 2] = -axis[:, 2], axis[:, 1]
+        maps[:, 1, 0], maps[:, 1, 2] = axis[:, 2], -axis[:, 0]
+        maps[:, 2, 0], maps[:, 2, 1] = -axis[:, 1], axis[:, 0]
+        maps[:, :, 3] = -np.cross(axis, origin)
         if not self.is_rotation.all():
             tr = ~self.is_rotation
-            jac[tr] = w_d[tr][:, :, None] * axis[tr][:, None, :]
-        return positions, jac.transpose(1, 2, 0)
+            maps[tr] = 0.0
+            maps[tr, :, 3] = axis[tr]
+        return maps
+
+    def points_jacobian(self, pose: Pose | np.ndarray, binding: SurfaceBinding):
+        """Positions (P, 3) and their Jacobian (P, 3, D) with respect to every DOF (the
+        Jacobian is returned as a transposed view of a (D, 3, P) array)."""
+        pose = self._as_pose(pose)
+        sums = self._subtree_sums(pose.skin, binding.y)  # (J, 4, P); row 3 = subtree weights
+        jac = self._lever_maps(pose) @ sums[self.dof_joint]  # (D, 3, P)
+        # joint 0 is the only root (Rig.validate), so its subtree sum is the point itself.
+        return sums[0, :3].T, jac.transpose(2, 1, 0)
+
+    def points_vjp(self, pose: Pose | np.ndarray, binding: SurfaceBinding, cotangent: np.ndarray) -> np.ndarray:
+        """(D,) gradient sum_p cotangent[p] . dpoint_p/dq without forming the Jacobian:
+        cotangent (P, 3). This is what a solver needs for a scalar objective, at O(J P) cost."""
+        pose = self._as_pose(pose)
+        cotangent = np.asarray(cotangent, dtype=np.float64)
+        contrib = pose.skin[:, :3, :] @ binding.y  # (J, 3, P)
+        # Per joint: sum_p c_jp x r_p and sum_p w_jp r_p, then summed over subtrees.
+        torque = np.cross(contrib.transpose(0, 2, 1), cotangent[None]).sum(axis=1)  # (J, 3)
+        force = binding.y[:, 3, :] @ cotangent  # (J, 3)
+        torque, force = self.subtree @ torque, self.subtree @ force
+        a = self.dof_joint
+        axis, origin = pose.dof_axis, pose.dof_origin
+        grad = np.einsum("da,da->d", axis, torque[a] - np.cross(origin, force[a]))
+        tr = ~self.is_rotation
+        if tr.any():
+            grad[tr] = np.einsum("da,da->d", axis[tr], force[a[tr]])
+        return grad
 
     def normals(self, pose: Pose | np.ndarray, binding: SurfaceBinding) -> np.ndarray:
         """(P, 3) unit skinned normals of bound surface points."""
         pose = self._as_pose(pose)
-        rt = pose.skin[:, :3, :3].transpose(0, 2, 1)
-        u = np.einsum("jpa,jab->pb", binding.z, rt)
+        r = pose.skin[:, :3, :3].transpose(1, 0, 2).reshape(3, -1)  # (3, J*3)
+        u = (r @ binding.z.reshape(-1, binding.n_points)).T
         return u / np.linalg.norm(u, axis=1, keepdims=True)
 
     def normals_jacobian(self, pose: Pose | np.ndarray, binding: SurfaceBinding):
-        """Unit normals (P, 3) and their Jacobian (P, 3, D)."""
+        """Unit normals (P, 3) and their Jacobian (P, 3, D) (a transposed view of (D, 3, P))."""
         pose = self._as_pose(pose)
-        n_points = binding.n_points
-        contrib = binding.z @ pose.skin[:, :3, :3].transpose(0, 2, 1)  # (J, P, 3)
-        sub = (self.subtree @ contrib.reshape(self.n_joints, -1)).reshape(self.n_joints, n_points, 3)
-        u = sub[0]
-        du = np.cross(pose.dof_axis[:, None, :], sub[self.dof_joint])  # (D, P, 3)
-        du[~self.is_rotation] = 0.0
-        length = np.linalg.norm(u, axis=1)
-        n = u / length[:, None]
-        radial = np.einsum("pa,dpa->dp", n, du)
-        dn = (du - radial[:, :, None] * n[None]) / length[None, :, None]
-        return n, dn.transpose(1, 2, 0)
+        sums = self._subtree_sums(pose.skin[:, :3, :3], binding.z)  # (J, 3, P)
+        u = sums[0]  # (3, P)
+        # Rotations: du = K_d @ sums; translations leave normals unchanged (their block is 0).
+        du = self._lever_maps(pose)[:, :, :3] @ sums[self.dof_joint]  # (D, 3, P)
+        length = np.sqrt(np.einsum("ap,ap->p", u, u))
+        n = u / length
+        radial = np.einsum("ap,dap->dp", n, du)
+        dn = (du - radial[:, None, :] * n[None]) / length
+        return n.T, dn.transpose(2, 1, 0)
 
     def skin(self, pose: Pose | np.ndarray, mesh: str = "surface") -> np.ndarray:
         """(V, 3) posed vertices of ``mesh`` by linear blend skinning."""
