@@ -233,10 +233,14 @@ class Kinematics:
         cotangent (P, 3). This is what a solver needs for a scalar objective, at O(J P) cost."""
         pose = self._as_pose(pose)
         cotangent = np.asarray(cotangent, dtype=np.float64)
-        contrib = pose.skin[:, :3, :] @ binding.y  # (J, 3, P)
-        # Per joint: sum_p c_jp x r_p and sum_p w_jp r_p, then summed over subtrees.
-        torque = np.cross(contrib.transpose(0, 2, 1), cotangent[None]).sum(axis=1)  # (J, 3)
-        force = binding.y[:, 3, :] @ cotangent  # (J, 3)
+        # Per joint: moments sum_p c_jp (x) r_p, whose antisymmetric part is sum_p c_jp x r_p,
+        # and forces sum_p w_jp r_p; the last row of y carries the weights.
+        moments = (pose.skin @ binding.y) @ cotangent  # (J, 4, 3)
+        torque = np.stack(
+            [moments[:, 1, 2] - moments[:, 2, 1], moments[:, 2, 0] - moments[:, 0, 2], moments[:, 0, 1] - moments[:, 1, 0]],
+            axis=1,
+        )
+        force = moments[:, 3, :]
         torque, force = self.subtree @ torque, self.subtree @ force
         a = self.dof_joint
         axis, origin = pose.dof_axis, pose.dof_origin
@@ -262,8 +266,8 @@ class Kinematics:
         du = self._lever_maps(pose)[:, :, :3] @ sums[self.dof_joint]  # (D, 3, P)
         length = np.sqrt(np.einsum("ap,ap->p", u, u))
         n = u / length
-        radial = np.einsum("ap,dap->dp", n, du)
-        dn = (du - radial[:, None, :] * n[None]) / length
+        radial = (du * n).sum(axis=1, keepdims=True)  # (D, 1, P)
+        dn = (du - radial * n) / length
         return n.T, dn.transpose(2, 1, 0)
 
     def skin(self, pose: Pose | np.ndarray, mesh: str = "surface") -> np.ndarray:

@@ -65,6 +65,12 @@ def _distances(points, verts, faces):
     return np.sqrt(np.maximum(d2, 0.0)), np.asarray(face, dtype=np.int64)
 
 
+def _nodes(axes, mask):
+    """(N, 3) positions of the grid nodes where ``mask`` is true."""
+    i, j, k = np.nonzero(mask)
+    return np.column_stack([axes[0][i], axes[1][j], axes[2][k]])
+
+
 def _ball(radius_voxels: int) -> np.ndarray:
     r = radius_voxels
     x, y, z = np.mgrid[-r : r + 1, -r : r + 1, -r : r + 1]
@@ -135,7 +141,7 @@ def build_wrapper(
     band = offset + 2 * spacing
     need = lower_bound < band
     dist = np.maximum(lower_bound, band + spacing)  # positive, outside
-    fine_pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)[need]
+    fine_pts = _nodes(axes, need)
     fine_d, _ = _distances(fine_pts, verts, faces)
     dist[need] = fine_d
     field = dist - offset
@@ -166,7 +172,7 @@ def build_wrapper(
     if n_labels > 1:
         sizes = ndimage.sum(inside, labels, index=np.arange(1, n_labels + 1))
         main = int(np.argmax(sizes)) + 1
-        stray_pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)[(labels != main) & inside]
+        stray_pts = _nodes(axes, (labels != main) & inside)
         _, stray_face = _distances(stray_pts, verts, faces)
         stray = sorted({names.get(int(j), f"joint {int(j)}") for j in face_owner[stray_face]})
         raise InputError(

@@ -1,0 +1,1 @@
+"""Standard-library HTTP client for the job service and the Blender add-in. See issues 7, 8."""

@@ -1,0 +1,1 @@
+"""Benchmarks behind ``handretarget bench``: they measure and return figures; the CLI prints."""

@@ -1,0 +1,48 @@
+"""Loading and saving rigs by file type: USD (.usd/.usda/.usdc), URDF (.urdf), MJCF (.xml/.mjcf)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import InputError
+from .model import Rig
+
+USD_SUFFIXES = (".usd", ".usda", ".usdc")
+URDF_SUFFIXES = (".urdf",)
+MJCF_SUFFIXES = (".xml", ".mjcf")
+
+
+def load_rig(path, *, wrapper_resolution: float = 0.002, root_body: str | None = None) -> Rig:
+    """Read a rig from USD, or import a robot hand from URDF or MJCF (which also builds its
+    closed wrapper surface at ``wrapper_resolution`` metres)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("no such file", source=str(path))
+    suffix = path.suffix.lower()
+    if suffix in USD_SUFFIXES:
+        from .usd_io import read_rig_usd
+
+        return read_rig_usd(path)
+    if suffix in URDF_SUFFIXES:
+        from .robot_import import load_urdf
+
+        return load_urdf(path, wrapper_resolution=wrapper_resolution)
+    if suffix in MJCF_SUFFIXES:
+        from .robot_import import load_mjcf
+
+        return load_mjcf(path, root_body=root_body, wrapper_resolution=wrapper_resolution)
+    raise InputError(
+        f"unknown rig file type {suffix!r}; expected one of "
+        + ", ".join(USD_SUFFIXES + URDF_SUFFIXES + MJCF_SUFFIXES),
+        source=str(path),
+    )
+
+
+def save_rig(rig: Rig, path) -> None:
+    """Write a rig as USD (.usda text or .usdc binary, by suffix)."""
+    path = Path(path)
+    if path.suffix.lower() not in USD_SUFFIXES:
+        raise InputError("rigs are written as USD: use .usda, .usdc or .usd", source=str(path))
+    from .usd_io import write_rig_usd
+
+    write_rig_usd(rig, path)

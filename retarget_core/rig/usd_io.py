@@ -1,0 +1,640 @@
+"""Rigs as USD files: a UsdSkel skeleton, skinned meshes and the DOF spec in one file.
+
+Layout written by :func:`write_rig_usd` (stage metadata ``metersPerUnit = 1``,
+``upAxis = "Z"``, ``defaultPrim`` = the SkelRoot)::
+
+    /<RigName>            SkelRoot, kind = "component"
+      Skeleton            UsdSkel.Skeleton: joints (paths "root", "root/wrist", ...),
+                          jointNames, restTransforms (Joint.rest_local, i.e. local at q = 0),
+                          bindTransforms (world at the rest pose), and the DOF spec in the
+                          ``handretarget:`` namespace (see below)
+      Surface             Mesh, purpose "default": the closed surface, skinned
+                          (SkelBindingAPI: skel:skeleton, primvars:skel:jointIndices /
+                          jointWeights, vertex interpolation, elementSize K,
+                          geomBindTransform = identity), points at the rest pose
+      Visual              Mesh, purpose "render" (only when ``rig.visual`` is set)
+
+DOF spec attributes on the Skeleton prim (spec version 1)::
+
+    int       handretarget:specVersion = 1
+    string    handretarget:rigName
+    string    handretarget:metadata        rig.metadata as JSON
+    string[]  handretarget:jointNames      original joint names, skeleton joint order
+    string[]  handretarget:dofNames
+    int[]     handretarget:dofJoints       index into the skeleton's joints array
+    token[]   handretarget:dofKinds        "rotate" | "translate"
+    double3[] handretarget:dofAxes         unit axis in the joint frame
+    double[]  handretarget:dofLower / dofUpper / dofRest
+
+Units in the file are the stage's: rotations in radians, translations (transforms, points,
+and the limits/rest of "translate" DOFs) in stage units, i.e. metres / metersPerUnit. The
+reader converts to metres and to the core's Z-up convention.
+
+USD stores matrices for row vectors; the core uses column vectors, so every matrix is
+transposed on the way in and out.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from .model import DOF_KINDS, Dof, Joint, Rig, SkinnedMesh
+
+SPEC_VERSION = 1
+NAMESPACE = "handretarget"
+_USD_EXTENSIONS = (".usda", ".usdc", ".usd")
+
+#: Rotation taking a Y-up stage to the core's Z-up convention (+90 degrees about X).
+Y_UP_TO_Z_UP = np.array(
+    [[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+)
+
+
+def _pxr():
+    from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt  # noqa: F401
+
+    return Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt
+
+
+def _attr_name(short: str) -> str:
+    return f"{NAMESPACE}:{short}"
+
+
+# ---- writing -------------------------------------------------------------------------------
+def _unique_identifiers(names: list[str], make_valid) -> list[str]:
+    """Valid, pairwise distinct prim-name tokens for ``names``."""
+    used: set[str] = set()
+    out = []
+    for name in names:
+        base = make_valid(name) or "joint"
+        token, k = base, 2
+        while token in used:
+            token, k = f"{base}_{k}", k + 1
+        used.add(token)
+        out.append(token)
+    return out
+
+
+def _joint_paths(rig: Rig, tokens: list[str]) -> list[str]:
+    paths: list[str] = []
+    for i, joint in enumerate(rig.joints):
+        paths.append(tokens[i] if joint.parent < 0 else f"{paths[joint.parent]}/{tokens[i]}")
+    return paths
+
+
+def _usd_matrices(mats: np.ndarray):
+    """(N, 4, 4) column-vector transforms -> Vt.Matrix4dArray (row-vector convention)."""
+    Vt = _pxr()[6]
+    return Vt.Matrix4dArray.FromNumpy(np.ascontiguousarray(np.asarray(mats, dtype=np.float64).transpose(0, 2, 1)))
+
+
+def _json_default(obj):
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
+
+
+def _write_mesh(stage, path: str, mesh: SkinnedMesh, skeleton, *, purpose: str, role: str, double_sided: bool):
+    Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt = _pxr()
+    geom = UsdGeom.Mesh.Define(stage, path)
+    points = np.asarray(mesh.vertices, dtype=np.float64)
+    geom.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(points, dtype=np.float32)))
+    geom.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(mesh.faces), 3, dtype=np.int32)))
+    geom.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(mesh.faces.reshape(-1), dtype=np.int32)))
+    geom.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    geom.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
+    geom.CreateDoubleSidedAttr(bool(double_sided))
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    geom.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
+    geom.CreatePurposeAttr(purpose)
+    geom.GetPrim().CreateAttribute(_attr_name("role"), Sdf.ValueTypeNames.Token, custom=True).Set(role)
+
+    binding = UsdSkel.BindingAPI.Apply(geom.GetPrim())
+    binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
+    k = mesh.joint_indices.shape[1]
+    binding.CreateJointIndicesPrimvar(False, k).Set(
+        Vt.IntArray.FromNumpy(np.ascontiguousarray(mesh.joint_indices.reshape(-1), dtype=np.int32))
+    )
+    binding.CreateJointWeightsPrimvar(False, k).Set(
+        Vt.FloatArray.FromNumpy(np.ascontiguousarray(mesh.joint_weights.reshape(-1), dtype=np.float32))
+    )
+    binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1.0))
+    return geom
+
+
+def _build_stage(rig: Rig):
+    Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt = _pxr()
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+
+    root_name = Tf.MakeValidIdentifier(rig.name or "") or "Rig"
+    root = UsdSkel.Root.Define(stage, f"/{root_name}")
+    stage.SetDefaultPrim(root.GetPrim())
+    Usd.ModelAPI(root.GetPrim()).SetKind("component")
+
+    skel = UsdSkel.Skeleton.Define(stage, f"/{root_name}/Skeleton")
+    tokens = _unique_identifiers(rig.joint_names, Tf.MakeValidIdentifier)
+    skel.CreateJointsAttr(Vt.TokenArray(_joint_paths(rig, tokens)))
+    skel.CreateJointNamesAttr(Vt.TokenArray(rig.joint_names))
+    rest_local = np.stack([np.asarray(j.rest_local, dtype=np.float64) for j in rig.joints])
+    skel.CreateRestTransformsAttr(_usd_matrices(rest_local))
+    skel.CreateBindTransformsAttr(_usd_matrices(rig.kinematics().bind_world))
+
+    prim = skel.GetPrim()
+    T = Sdf.ValueTypeNames
+
+    def put(short, type_name, value, doc=""):
+        attr = prim.CreateAttribute(_attr_name(short), type_name, custom=True)
+        attr.Set(value)
+        if doc:
+            attr.SetDocumentation(doc)
+
+    try:
+        metadata_json = json.dumps(rig.metadata, default=_json_default, sort_keys=True)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"rig metadata is not JSON serialisable: {exc}", element="metadata") from exc
+    put("specVersion", T.Int, SPEC_VERSION, "version of the handretarget DOF spec stored here")
+    put("rigName", T.String, rig.name)
+    put("metadata", T.String, metadata_json, "rig metadata as JSON")
+    put("jointNames", T.StringArray, Vt.StringArray(rig.joint_names), "original joint names, skeleton order")
+    put("dofNames", T.StringArray, Vt.StringArray(rig.dof_names))
+    put("dofJoints", T.IntArray, Vt.IntArray([int(d.joint) for d in rig.dofs]), "index into the skeleton joints")
+    put("dofKinds", T.TokenArray, Vt.TokenArray([d.kind for d in rig.dofs]), "rotate (radians) or translate (stage units)")
+    put("dofAxes", T.Double3Array, Vt.Vec3dArray([Gf.Vec3d(*map(float, d.axis)) for d in rig.dofs]), "unit axis, joint frame")
+    put("dofLower", T.DoubleArray, Vt.DoubleArray([float(d.lower) for d in rig.dofs]))
+    put("dofUpper", T.DoubleArray, Vt.DoubleArray([float(d.upper) for d in rig.dofs]))
+    put("dofRest", T.DoubleArray, Vt.DoubleArray([float(d.rest) for d in rig.dofs]), "DOF values of the bind pose")
+
+    _write_mesh(stage, f"/{root_name}/Surface", rig.surface, skel, purpose=UsdGeom.Tokens.default_,
+                role="surface", double_sided=False)
+    if rig.visual is not None:
+        _write_mesh(stage, f"/{root_name}/Visual", rig.visual, skel, purpose=UsdGeom.Tokens.render,
+                    role="visual", double_sided=True)
+    return stage
+
+
+def write_rig_usd(rig: Rig, path) -> None:
+    """Write ``rig`` to a USD file (.usda text, .usdc or .usd crate), atomically: the file is
+    written next to its destination under a temporary name and then moved into place."""
+    path = Path(path)
+    ext = path.suffix.lower()
+    if ext not in _USD_EXTENSIONS:
+        raise InputError(f"USD file name must end in {', '.join(_USD_EXTENSIONS)}", source=str(path))
+    stage = _build_stage(rig)
+    folder = path.parent if str(path.parent) else Path(".")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=ext, dir=folder)
+    os.close(fd)
+    try:
+        if not stage.GetRootLayer().Export(tmp):
+            raise OSError(f"USD could not write {path}")
+        # mkstemp creates the file 0600; give it the mode a plain open() would have
+        os.chmod(tmp, path.stat().st_mode & 0o7777 if path.exists() else 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+# ---- reading -------------------------------------------------------------------------------
+def _open_stage(path: Path):
+    Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt = _pxr()
+    src = str(path)
+    if not path.is_file():
+        raise InputError("file not found", source=src)
+    if path.suffix.lower() not in _USD_EXTENSIONS + (".usdz",):
+        raise InputError(f"not a USD file (expected {', '.join(_USD_EXTENSIONS + ('.usdz',))})", source=src)
+    try:
+        layer = Sdf.Layer.Find(src)
+        if layer is not None and not layer.dirty:
+            layer.Reload()  # the file may have been replaced since it was last opened
+        stage = Usd.Stage.Open(src, Usd.Stage.LoadAll)
+    except Exception as exc:  # pxr.Tf.ErrorException and friends
+        raise InputError(f"not a readable USD file: {str(exc).strip()}", source=src) from exc
+    if stage is None:
+        raise InputError("not a readable USD file", source=src)
+    return stage
+
+
+def _find_skeleton(stage):
+    UsdSkel = _pxr()[5]
+    first_any = None
+    for prim in stage.Traverse():
+        if prim.IsA(UsdSkel.Skeleton):
+            parent = prim.GetParent()
+            while parent and not parent.IsPseudoRoot():
+                if parent.IsA(UsdSkel.Root):
+                    return UsdSkel.Skeleton(prim)
+                parent = parent.GetParent()
+            if first_any is None:
+                first_any = UsdSkel.Skeleton(prim)
+    return first_any
+
+
+def _matrices(value, n: int, *, src: str, element: str) -> np.ndarray:
+    if value is None:
+        raise InputError("attribute is missing", source=src, element=element)
+    mats = np.array(value, dtype=np.float64).reshape(-1, 4, 4)
+    if len(mats) != n:
+        raise InputError(f"has {len(mats)} matrices for {n} joints", source=src, element=element)
+    return mats.transpose(0, 2, 1)
+
+
+def _parents_from_paths(paths: list[str], *, src: str, element: str) -> list[int]:
+    index = {}
+    for i, p in enumerate(paths):
+        if not p or p in index:
+            raise InputError(f"joint path {p!r} is empty or used twice", source=src, element=element)
+        index[p] = i
+    parents = []
+    for p in paths:
+        parent = -1
+        parts = p.split("/")
+        for cut in range(len(parts) - 1, 0, -1):
+            anc = "/".join(parts[:cut])
+            if anc in index:
+                parent = index[anc]
+                break
+        parents.append(parent)
+    roots = [paths[i] for i, par in enumerate(parents) if par < 0]
+    if len(roots) != 1:
+        raise InputError(
+            f"the skeleton must have exactly one root joint, found {len(roots)}: {roots[:5]}",
+            source=src,
+            element=element,
+        )
+    return parents
+
+
+def _parents_first_order(parents: list[int]) -> list[int]:
+    """Joint order with every parent before its children, otherwise as in the file."""
+    order: list[int] = []
+    placed = [False] * len(parents)
+
+    def place(i):
+        chain = []
+        while i >= 0 and not placed[i]:
+            chain.append(i)
+            i = parents[i]
+        for j in reversed(chain):
+            placed[j] = True
+            order.append(j)
+
+    for i in range(len(parents)):
+        place(i)
+    return order
+
+
+def _get(prim, short: str, *, src: str, required: bool = True):
+    attr = prim.GetAttribute(_attr_name(short))
+    value = attr.Get() if attr and attr.IsValid() else None
+    if value is None and required:
+        raise InputError(
+            f"attribute {_attr_name(short)} is missing (the rig's DOF spec is incomplete)",
+            source=src,
+            element=f"{prim.GetPath()}.{_attr_name(short)}",
+        )
+    return value
+
+
+def _read_dofs(prim, n_joints: int, *, src: str):
+    version = _get(prim, "specVersion", src=src)
+    if int(version) != SPEC_VERSION:
+        raise InputError(
+            f"unsupported DOF spec version {version} (this reader knows version {SPEC_VERSION})",
+            source=src,
+            element=f"{prim.GetPath()}.{_attr_name('specVersion')}",
+        )
+    names = [str(s) for s in _get(prim, "dofNames", src=src)]
+    n = len(names)
+    columns = {}
+    for short in ("dofJoints", "dofKinds", "dofAxes", "dofLower", "dofUpper", "dofRest"):
+        value = list(_get(prim, short, src=src))
+        if len(value) != n:
+            raise InputError(
+                f"attribute {_attr_name(short)} has {len(value)} entries but there are {n} DOFs "
+                f"({_attr_name('dofNames')})",
+                source=src,
+                element=f"{prim.GetPath()}.{_attr_name(short)}",
+            )
+        columns[short] = value
+    dofs = []
+    for i, name in enumerate(names):
+        joint = int(columns["dofJoints"][i])
+        if not 0 <= joint < n_joints:
+            raise InputError(
+                f"joint index {joint} out of range [0, {n_joints})",
+                source=src,
+                element=f"DOF {name!r} ({_attr_name('dofJoints')})",
+            )
+        kind = str(columns["dofKinds"][i])
+        if kind not in DOF_KINDS:
+            raise InputError(
+                f"unknown DOF kind {kind!r}; expected one of {DOF_KINDS}",
+                source=src,
+                element=f"DOF {name!r} ({_attr_name('dofKinds')})",
+            )
+        dofs.append(
+            Dof(
+                name=name,
+                joint=joint,
+                kind=kind,
+                axis=np.array(columns["dofAxes"][i], dtype=np.float64),
+                lower=float(columns["dofLower"][i]),
+                upper=float(columns["dofUpper"][i]),
+                rest=float(columns["dofRest"][i]),
+            )
+        )
+    return dofs
+
+
+def _find_meshes(stage, skel):
+    """(surface, visual) Mesh prims bound to ``skel``; either may be None."""
+    Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt = _pxr()
+    scope = skel.GetPrim().GetParent()
+    while scope and not scope.IsPseudoRoot() and not scope.IsA(UsdSkel.Root):
+        scope = scope.GetParent()
+    if not scope or scope.IsPseudoRoot():
+        scope = stage.GetPseudoRoot()
+    bound = []
+    for prim in Usd.PrimRange(scope):
+        if not prim.IsA(UsdGeom.Mesh):
+            continue
+        target = UsdSkel.BindingAPI(prim).GetInheritedSkeleton()
+        if target and target.GetPath() == skel.GetPath():
+            bound.append(prim)
+    by_role: dict[str, object] = {}
+    for prim in bound:
+        attr = prim.GetAttribute(_attr_name("role"))
+        role = str(attr.Get()) if attr and attr.HasAuthoredValue() else prim.GetName().lower()
+        by_role.setdefault(role, prim)
+    surface = by_role.get("surface")
+    if surface is None and len(bound) == 1:
+        surface = bound[0]
+    return surface, by_role.get("visual"), bound
+
+
+def _read_mesh(prim, skel_paths: list[str], *, src: str, element: str):
+    """Points (V, 3) in stage units (after geomBindTransform), faces (F, 3), joint indices
+    (V, K) into the skeleton's joint order, weights (V, K)."""
+    Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt = _pxr()
+    el = f"{element} mesh {prim.GetPath()}"
+    geom = UsdGeom.Mesh(prim)
+    points = geom.GetPointsAttr().Get()
+    counts = geom.GetFaceVertexCountsAttr().Get()
+    indices = geom.GetFaceVertexIndicesAttr().Get()
+    if points is None or counts is None or indices is None:
+        raise InputError("mesh needs points, faceVertexCounts and faceVertexIndices", source=src, element=el)
+    points = np.array(points, dtype=np.float64).reshape(-1, 3)
+    counts = np.array(counts, dtype=np.int64)
+    indices = np.array(indices, dtype=np.int64)
+    if counts.sum() != len(indices):
+        raise InputError(
+            f"faceVertexCounts sum to {counts.sum()} but there are {len(indices)} faceVertexIndices",
+            source=src,
+            element=el,
+        )
+    if len(counts) and counts.min() < 3:
+        raise InputError(f"face {int(np.argmin(counts))} has fewer than 3 vertices", source=src, element=el)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    tris = []
+    for n in np.unique(counts):  # fan-triangulate polygons, grouped by size
+        sel = starts[counts == n]
+        for k in range(1, int(n) - 1):
+            tris.append(np.stack([sel, sel + k, sel + k + 1], axis=1))
+    if tris:
+        corner = np.concatenate(tris)
+        # keep the faces in the file's order
+        order = np.argsort(corner[:, 0], kind="stable")
+        faces = indices[corner[order]]
+    else:
+        faces = np.zeros((0, 3), dtype=np.int64)
+    if geom.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
+        faces = faces[:, ::-1].copy()
+
+    binding = UsdSkel.BindingAPI(prim)
+    ji_pv, jw_pv = binding.GetJointIndicesPrimvar(), binding.GetJointWeightsPrimvar()
+    if not ji_pv or not jw_pv or ji_pv.Get() is None or jw_pv.Get() is None:
+        raise InputError(
+            "skinned mesh needs primvars:skel:jointIndices and primvars:skel:jointWeights", source=src, element=el
+        )
+    ji = np.array(ji_pv.Get(), dtype=np.int64)
+    jw = np.array(jw_pv.Get(), dtype=np.float64)
+    k = ji_pv.GetElementSize()
+    if k != jw_pv.GetElementSize() or len(ji) != len(jw) or k < 1 or len(ji) % k:
+        raise InputError(
+            f"jointIndices ({len(ji)} values, elementSize {ji_pv.GetElementSize()}) and jointWeights "
+            f"({len(jw)} values, elementSize {jw_pv.GetElementSize()}) do not match",
+            source=src,
+            element=el + " skin weights",
+        )
+    ji, jw = ji.reshape(-1, k), jw.reshape(-1, k)
+    if ji_pv.GetInterpolation() == UsdGeom.Tokens.constant and len(ji) == 1:
+        ji, jw = np.repeat(ji, len(points), axis=0), np.repeat(jw, len(points), axis=0)
+    if len(ji) != len(points):
+        raise InputError(
+            f"{len(ji)} skinning entries for {len(points)} points (need vertex interpolation)",
+            source=src,
+            element=el + " skin weights",
+        )
+    joints_attr = binding.GetJointsAttr()
+    mesh_joints = joints_attr.Get() if joints_attr and joints_attr.HasAuthoredValue() else None
+    if mesh_joints is not None:
+        lookup = {p: i for i, p in enumerate(skel_paths)}
+        unknown = [str(p) for p in mesh_joints if str(p) not in lookup]
+        if unknown:
+            raise InputError(
+                f"skel:joints names joints the skeleton does not have: {unknown[:5]}",
+                source=src,
+                element=el + " skel:joints",
+            )
+        remap = np.array([lookup[str(p)] for p in mesh_joints], dtype=np.int64)
+        if len(ji) and (ji.min() < 0 or ji.max() >= len(remap)):
+            raise InputError(
+                f"joint index out of range [0, {len(remap)}) of skel:joints", source=src, element=el + " skin weights"
+            )
+        ji = remap[ji] if len(remap) else ji
+    geom_bind = binding.GetGeomBindTransformAttr().Get() if binding.GetGeomBindTransformAttr() else None
+    if geom_bind is not None:
+        g = np.array(geom_bind, dtype=np.float64).T
+        if not np.allclose(g, np.eye(4)):
+            points = points @ g[:3, :3].T + g[:3, 3]
+    return points, faces, ji, jw
+
+
+def read_rig_usd(path) -> Rig:
+    """Read a rig written by :func:`write_rig_usd` (or any UsdSkel file carrying the
+    ``handretarget:`` DOF spec), converting to metres and Z-up; validated before returning."""
+    path = Path(path)
+    src = str(path)
+    Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt = _pxr()
+    stage = _open_stage(path)
+    skel = _find_skeleton(stage)
+    if skel is None:
+        raise InputError("USD file without a skeleton (no UsdSkel.Skeleton prim)", source=src, element="Skeleton")
+    prim = skel.GetPrim()
+    skel_el = str(prim.GetPath())
+
+    paths = [str(t) for t in (skel.GetJointsAttr().Get() or [])]
+    if not paths:
+        raise InputError("skeleton has no joints", source=src, element=f"{skel_el}.joints")
+    n = len(paths)
+    parents = _parents_from_paths(paths, src=src, element=f"{skel_el}.joints")
+    names = _get(prim, "jointNames", src=src, required=False)
+    if names is None:
+        names = skel.GetJointNamesAttr().Get() if skel.GetJointNamesAttr().HasAuthoredValue() else None
+    names = [str(s) for s in names] if names is not None else [p.rsplit("/", 1)[-1] for p in paths]
+    if len(names) != n:
+        raise InputError(
+            f"{len(names)} joint names for {n} joints", source=src, element=f"{skel_el}.{_attr_name('jointNames')}"
+        )
+    rest_local = _matrices(skel.GetRestTransformsAttr().Get(), n, src=src, element=f"{skel_el}.restTransforms")
+    bind_attr = skel.GetBindTransformsAttr()
+    bind_usd = (
+        _matrices(bind_attr.Get(), n, src=src, element=f"{skel_el}.bindTransforms")
+        if bind_attr.HasAuthoredValue()
+        else None
+    )
+    dofs = _read_dofs(prim, n, src=src)
+
+    surface_prim, visual_prim, bound = _find_meshes(stage, skel)
+    if surface_prim is None:
+        raise InputError(
+            "no skinned mesh for the rig's surface (expected a Mesh 'Surface' bound to the skeleton"
+            + (f"; found {[str(p.GetPath()) for p in bound]}" if bound else "")
+            + ")",
+            source=src,
+            element="Surface",
+        )
+    meshes = {"surface": _read_mesh(surface_prim, paths, src=src, element="surface")}
+    if visual_prim is not None and visual_prim != surface_prim:
+        meshes["visual"] = _read_mesh(visual_prim, paths, src=src, element="visual")
+
+    # Parents-first joint order.
+    order = _parents_first_order(parents)
+    new_index = np.empty(n, dtype=np.int64)
+    new_index[order] = np.arange(n)
+    joints_rest = rest_local[order]
+    parents_new = [int(new_index[parents[i]]) if parents[i] >= 0 else -1 for i in order]
+    names = [names[i] for i in order]
+    for d in dofs:
+        d.joint = int(new_index[d.joint])
+    dofs.sort(key=lambda d: d.joint)  # stable: DOF order within a joint is kept
+    if bind_usd is not None:
+        bind_usd = bind_usd[order]
+    for key, (pts, faces, ji, jw) in meshes.items():
+        meshes[key] = (pts, faces, new_index[ji] if ji.size else ji, jw)
+
+    # Units: stage units -> metres.
+    scale = float(UsdGeom.GetStageMetersPerUnit(stage))
+    if not np.isfinite(scale) or scale <= 0:
+        raise InputError(f"metersPerUnit must be positive, got {scale}", source=src, element="metersPerUnit")
+    if scale != 1.0:
+        joints_rest[:, :3, 3] *= scale
+        if bind_usd is not None:
+            bind_usd[:, :3, 3] *= scale
+        for key, (pts, faces, ji, jw) in meshes.items():
+            meshes[key] = (pts * scale, faces, ji, jw)
+        for d in dofs:
+            if d.kind == "translate":
+                d.lower, d.upper, d.rest = d.lower * scale, d.upper * scale, d.rest * scale
+
+    # Up axis: the core is Z-up; a Y-up stage is turned +90 degrees about X.
+    up = str(UsdGeom.GetStageUpAxis(stage))
+    if up == "Y":
+        root = parents_new.index(-1)
+        joints_rest[root] = Y_UP_TO_Z_UP @ joints_rest[root]
+        if bind_usd is not None:
+            bind_usd = Y_UP_TO_Z_UP @ bind_usd
+        r = Y_UP_TO_Z_UP[:3, :3]
+        for key, (pts, faces, ji, jw) in meshes.items():
+            meshes[key] = (pts @ r.T, faces, ji, jw)
+    elif up != "Z":
+        raise InputError(f"unsupported upAxis {up!r} (expected Y or Z)", source=src, element="upAxis")
+
+    joints = [Joint(name=names[i], parent=parents_new[i], rest_local=joints_rest[i]) for i in range(n)]
+    metadata_json = _get(prim, "metadata", src=src, required=False)
+    try:
+        metadata = json.loads(metadata_json) if metadata_json else {}
+    except ValueError as exc:
+        raise InputError(f"metadata is not valid JSON: {exc}", source=src, element=_attr_name("metadata")) from exc
+    rig_name = _get(prim, "rigName", src=src, required=False) or prim.GetParent().GetName() or path.stem
+
+    def skinned(key):
+        pts, faces, ji, jw = meshes[key]
+        return SkinnedMesh(vertices=pts, faces=faces, joint_indices=ji, joint_weights=jw)
+
+    rig = Rig(
+        name=str(rig_name),
+        joints=joints,
+        dofs=dofs,
+        surface=skinned("surface"),
+        visual=skinned("visual") if "visual" in meshes else None,
+        metadata=metadata if isinstance(metadata, dict) else {"value": metadata},
+    )
+    rig.validate(source=src)
+
+    # The core binds surfaces at the rest pose. If the file's bindTransforms differ from the
+    # rest pose's world transforms, carry the points from the file's bind pose to the rest pose.
+    if bind_usd is not None:
+        bind_rest = rig.kinematics().bind_world
+        if np.abs(bind_usd - bind_rest).max() > 1e-9:
+            if not np.all(np.isfinite(bind_usd)) or np.any(np.abs(np.linalg.det(bind_usd)) < 1e-12):
+                raise InputError("bind transforms are not invertible", source=src, element=f"{skel_el}.bindTransforms")
+            skin = bind_rest @ np.linalg.inv(bind_usd)  # (J, 4, 4)
+            for mesh in (rig.surface, rig.visual):
+                if mesh is None:
+                    continue
+                dense = mesh.dense_weights(rig.n_joints)  # (V, J)
+                homog = np.concatenate([mesh.vertices, np.ones((mesh.n_vertices, 1))], axis=1)
+                moved = np.einsum("vj,jab,vb->va", dense, skin[:, :3, :], homog)
+                mesh.vertices = moved
+            rig.__dict__.pop("_kinematics", None)
+            rig.validate(source=src)
+    return rig
+
+
+# ---- compliance ----------------------------------------------------------------------------
+def check_usd_compliance(path, *, include_warnings: bool = False) -> list[str]:
+    """Run USD's compliance checks on a file and return the problems found ([] = compliant).
+
+    Uses ``pxr.UsdUtils.ComplianceChecker`` (default rules, not ARKit) where the installed USD
+    still has it; USD 26 removed it in favour of the UsdValidation framework, in which case
+    every registered validator runs (this covers the former default rules: stage metadata,
+    prim encapsulation, SkelBindingAPI / MaterialBindingAPI application, missing references,
+    package layout, ...). Errors are returned; warnings too when ``include_warnings``."""
+    path = Path(path)
+    src = str(path)
+    if not path.is_file():
+        raise InputError("file not found", source=src)
+    from pxr import UsdUtils
+
+    checker_cls = getattr(UsdUtils, "ComplianceChecker", None)
+    if checker_cls is not None:  # USD < 26
+        checker = checker_cls(arkit=False, skipARKitRootLayerCheck=False, rootPackageOnly=False)
+        checker.CheckCompliance(src)
+        problems = list(checker.GetErrors()) + list(checker.GetFailedChecks())
+        if include_warnings:
+            problems += list(checker.GetWarnings())
+        return [str(p) for p in problems]
+
+    from pxr import UsdValidation
+
+    stage = _open_stage(path)
+    registry = UsdValidation.ValidationRegistry()
+    context = UsdValidation.ValidationContext(registry.GetOrLoadAllValidators())
+    wanted = {UsdValidation.ValidationErrorType.Error}
+    if include_warnings:
+        wanted.add(UsdValidation.ValidationErrorType.Warn)
+    return [e.GetErrorAsString() for e in context.Validate(stage) if e.GetType() in wanted]
