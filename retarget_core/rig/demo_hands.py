@@ -70,7 +70,7 @@ def source_human_spec(resolution: float = 0.002) -> HandSpec:
     """The source human hand (MANO-like proportions) that the demo clips are made with."""
     return HandSpec(
         name="source_human",
-        palm=PalmSpec(width=0.084, length=0.094, thickness=0.026, start=-0.004),
+        palm=PalmSpec(width=0.084, length=0.094, thickness=0.026, start=-0.004, rounding=0.011),
         fingers=_human_fingers(),
         wrist=_WRIST,
         forearm_length=0.03,
@@ -84,7 +84,7 @@ def human_alt_spec(resolution: float = 0.002) -> HandSpec:
     """A second human hand: broader palm, shorter and thicker fingers."""
     return HandSpec(
         name="human_alt",
-        palm=PalmSpec(width=0.094, length=0.088, thickness=0.030, start=-0.004),
+        palm=PalmSpec(width=0.094, length=0.088, thickness=0.030, start=-0.004, rounding=0.012),
         fingers=_human_fingers(length_scale=0.88, girth_scale=1.12, spread=1.1, palm_width=0.094),
         wrist=_WRIST,
         forearm_length=0.03,
@@ -98,7 +98,7 @@ def witch_spec(resolution: float = 0.002) -> HandSpec:
     """Long thin fingers on a narrow palm (the paper's witch hand)."""
     return HandSpec(
         name="witch",
-        palm=PalmSpec(width=0.078, length=0.100, thickness=0.022, start=-0.004),
+        palm=PalmSpec(width=0.078, length=0.100, thickness=0.022, start=-0.004, rounding=0.009),
         fingers=_human_fingers(length_scale=1.55, girth_scale=0.78, spread=1.2, palm_width=0.078),
         wrist=_WRIST,
         forearm_length=0.03,
