@@ -1,0 +1,574 @@
+"""Robot hands from URDF (yourdfpy) and MJCF (MuJoCo) files as :class:`Rig` objects.
+
+Both loaders produce the same layout:
+
+- joint 0 is an added ``root`` joint with six DOFs (``root_tx/ty/tz`` translations within
+  +-2 m, then ``root_rx/ry/rz`` rotations within +-2 pi, all about world axes, rest 0), the
+  parent of the robot's base link / root body, exactly like the procedural hands;
+- world coordinates are those of the source file (root DOFs at 0 = the file's placement);
+- ``Rig.visual`` is the robot's own display geometry concatenated, rigidly skinned (weight 1
+  to the joint that carries it), world coordinates at the rest pose;
+- ``Rig.surface`` is a closed, connected, manifold wrapper generated around that same display
+  geometry by :func:`retarget_core.rig.wrapper.build_wrapper` (robot meshes are rarely
+  watertight, so they cannot be the surface themselves);
+- every DOF has finite limits; its rest value is 0 clipped into its limits; geometry is
+  authored at that rest pose.
+
+Choices specific to each format are described in :func:`load_urdf` and :func:`load_mjcf`.
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from .model import Dof, Joint, Rig, SkinnedMesh
+from .wrapper import build_wrapper
+
+ROOT_TRANSLATION_LIMIT = 2.0
+WRAPPER_OFFSET = 0.0015
+
+
+# ---- shared helpers ------------------------------------------------------------------------
+def _root_joint_and_dofs():
+    joints = [Joint("root", -1, np.eye(4))]
+    dofs = []
+    lim = ROOT_TRANSLATION_LIMIT
+    for axis_name, axis in (("tx", (1, 0, 0)), ("ty", (0, 1, 0)), ("tz", (0, 0, 1))):
+        dofs.append(Dof(f"root_{axis_name}", 0, "translate", np.array(axis, float), -lim, lim, 0.0))
+    for axis_name, axis in (("rx", (1, 0, 0)), ("ry", (0, 1, 0)), ("rz", (0, 0, 1))):
+        dofs.append(Dof(f"root_{axis_name}", 0, "rotate", np.array(axis, float), -2 * np.pi, 2 * np.pi, 0.0))
+    return joints, dofs
+
+
+def _unique_names(joints) -> dict[str, str]:
+    """Rename robot joints whose name clashes with an earlier one (the added ``root`` first)
+    by appending ``_link`` (then ``_link2``...). Returns {new name: original name}."""
+    seen = set()
+    renamed = {}
+    for jt in joints:
+        name, k = jt.name, 1
+        while name in seen:
+            name = f"{jt.name}_link" + (str(k) if k > 1 else "")
+            k += 1
+        if name != jt.name:
+            renamed[name] = jt.name
+            jt.name = name
+        seen.add(name)
+    return renamed
+
+
+def _unit_axis(axis, *, source, element) -> np.ndarray:
+    vec = np.asarray(axis, dtype=np.float64).reshape(-1)
+    if vec.shape != (3,) or not np.all(np.isfinite(vec)) or np.linalg.norm(vec) < 1e-12:
+        raise InputError(f"joint axis must be a non-zero 3-vector, got {axis!r}", source=source, element=element)
+    return vec / np.linalg.norm(vec)
+
+
+def _check_limits(lower, upper, *, source, element) -> tuple[float, float]:
+    if lower is None or upper is None or not (np.isfinite(lower) and np.isfinite(upper)):
+        raise InputError(
+            "joint has no finite limits (lower and upper are required for every actuated joint)",
+            source=source,
+            element=element,
+        )
+    if not lower < upper:
+        raise InputError(f"lower limit {lower} is not below upper limit {upper}", source=source, element=element)
+    return float(lower), float(upper)
+
+
+def _transform_points(m: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return v @ m[:3, :3].T + m[:3, 3]
+
+
+def _rest_frames(joints, dofs) -> tuple[np.ndarray, np.ndarray]:
+    """World joint frames at q = 0 and at the rest pose, (J, 4, 4) each."""
+    from .kinematics import Kinematics
+
+    probe = Rig(name="probe", joints=joints, dofs=dofs, surface=None)
+    kin = Kinematics(probe)
+    zero = kin.pose(np.zeros(len(dofs))).world
+    return zero, kin.bind_world
+
+
+def _finish(name, joints, dofs, pieces, source, metadata, wrapper_resolution) -> Rig:
+    """pieces: (joint, vertices world at q = 0, faces). Moves them to the rest pose, builds
+    the visual and the wrapper, validates."""
+    if not pieces:
+        raise InputError("the robot has no visual or collision geometry to build a surface from", source=source)
+    zero, rest = _rest_frames(joints, dofs)
+    carry = rest @ np.linalg.inv(zero)
+    posed = [(j, _transform_points(carry[j], v), f) for j, v, f in pieces]
+    verts, faces, owner = [], [], []
+    base = 0
+    for j, v, f in posed:
+        verts.append(v)
+        faces.append(f + base)
+        owner.append(np.full(len(v), j, dtype=np.int64))
+        base += len(v)
+    visual = SkinnedMesh(
+        np.concatenate(verts), np.concatenate(faces), np.concatenate(owner)[:, None], np.ones((base, 1))
+    )
+    surface = build_wrapper(
+        posed,
+        resolution=wrapper_resolution,
+        offset=WRAPPER_OFFSET,
+        parents=[jt.parent for jt in joints],
+        link_names={i: jt.name for i, jt in enumerate(joints)},
+    )
+    rig = Rig(name=name, joints=joints, dofs=dofs, surface=surface, visual=visual, metadata=metadata)
+    rig.validate(source=source)
+    return rig
+
+
+def _primitive(kind: str, size) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and faces of a primitive centred at the origin (capsules/cylinders along z)."""
+    import trimesh
+
+    if kind == "box":
+        m = trimesh.creation.box(extents=np.asarray(size, float))
+    elif kind == "sphere":
+        m = trimesh.creation.icosphere(subdivisions=3, radius=float(size[0]))
+    elif kind == "ellipsoid":
+        m = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+        m = trimesh.Trimesh(m.vertices * np.asarray(size, float)[:3], m.faces, process=False)
+    elif kind == "cylinder":  # size = (radius, full length)
+        m = trimesh.creation.cylinder(radius=float(size[0]), height=float(size[1]), sections=32)
+    elif kind == "capsule":  # size = (radius, full length of the cylindrical part)
+        m = trimesh.creation.capsule(height=float(size[1]), radius=float(size[0]), count=[24, 24])
+    else:  # pragma: no cover - callers filter kinds
+        raise ValueError(kind)
+    return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
+
+
+# ---- URDF ----------------------------------------------------------------------------------
+def _resolve_mesh_path(filename: str, urdf_dir: Path) -> Path | None:
+    """Absolute path of a URDF mesh reference, or None when no candidate exists.
+
+    Relative paths are relative to the URDF's folder; ``file://`` URIs are taken literally;
+    ``package://pkg/rest`` is searched in the URDF's folder and each ancestor folder, both as
+    ``<ancestor>/pkg/rest`` and, when the ancestor itself is named ``pkg``, ``<ancestor>/rest``."""
+    if filename.startswith("file://"):
+        p = Path(filename[len("file://") :])
+        return p if p.is_file() else None
+    if filename.startswith("package://"):
+        rest = filename[len("package://") :]
+        package, _, inner = rest.partition("/")
+        for folder in [urdf_dir, *urdf_dir.parents]:
+            for candidate in (folder / package / inner, folder / inner if folder.name == package else None):
+                if candidate is not None and candidate.is_file():
+                    return candidate
+        return None
+    p = Path(filename)
+    if not p.is_absolute():
+        p = urdf_dir / p
+    return p if p.is_file() else None
+
+
+def _load_mesh_file(path: Path, *, source, element) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    try:
+        mesh = trimesh.load(str(path), force="mesh")
+    except Exception as exc:  # trimesh raises many kinds
+        raise InputError(f"cannot read mesh file {path}: {exc}", source=source, element=element) from exc
+    v = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), float)
+    f = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), np.int64)
+    if len(v) == 0 or len(f) == 0:
+        raise InputError(f"mesh file {path} has no triangles", source=source, element=element)
+    return v, f
+
+
+def _urdf_geometry(geometry, urdf_dir: Path, *, source, element):
+    """(vertices, faces) in the geometry's own frame, or None for an empty geometry."""
+    if geometry is None:
+        return None
+    if geometry.mesh is not None:
+        filename = geometry.mesh.filename
+        path = _resolve_mesh_path(filename, urdf_dir)
+        if path is None:
+            raise InputError(
+                f"mesh file {filename!r} not found (searched relative to {urdf_dir})",
+                source=source,
+                element=element,
+            )
+        v, f = _load_mesh_file(path, source=source, element=element)
+        scale = geometry.mesh.scale
+        if scale is not None:
+            v = v * np.broadcast_to(np.asarray(scale, float), (3,))
+        return v, f
+    if geometry.box is not None:
+        return _primitive("box", geometry.box.size)
+    if geometry.cylinder is not None:
+        return _primitive("cylinder", (geometry.cylinder.radius, geometry.cylinder.length))
+    if geometry.sphere is not None:
+        return _primitive("sphere", (geometry.sphere.radius,))
+    return None
+
+
+def load_urdf(path, *, wrapper_resolution: float = 0.002) -> Rig:
+    """Load a robot hand from a URDF file.
+
+    - Each non-fixed URDF joint becomes a rig joint named after its child link, with one DOF
+      named after the URDF joint: ``revolute`` -> "rotate" about the (unit-normalised) joint
+      axis, ``prismatic`` -> "translate" along it, ``continuous`` -> "rotate" with limits
+      [-pi, pi] (continuous joints have none in the file). Revolute/prismatic joints without
+      ``<limit lower upper>`` raise InputError naming the joint. ``mimic`` tags are ignored
+      (the joint becomes an independent DOF); floating/planar joints raise InputError.
+    - **Fixed joints are merged** into the nearest non-fixed ancestor: their link's geometry is
+      carried by that ancestor's rig joint. ``metadata["link_frames"]`` maps every URDF link
+      name to ``[rig joint name, 4x4 offset as nested lists]`` so that its world frame is
+      ``world[joint] @ offset``.
+    - The base link becomes the rig joint named after it, child of the 6-DOF ``root``.
+    - Geometry: each link's ``<visual>`` elements (meshes with scale and origin, boxes,
+      cylinders, spheres); a link without visuals contributes its ``<collision>`` elements.
+      It is both ``Rig.visual`` and the input of the wrapper surface.
+    - Mesh references: relative paths (to the URDF folder), ``file://`` and ``package://``
+      (searched upward from the URDF folder); a missing file raises InputError naming the
+      URDF, the link and the mesh.
+    """
+    import yourdfpy
+
+    path = Path(path)
+    source = str(path)
+    if not path.is_file():
+        raise InputError("URDF file not found", source=source)
+    try:
+        ET.parse(path)  # yourdfpy recovers from malformed XML silently; be strict first
+    except ET.ParseError as exc:
+        raise InputError(f"malformed XML: {exc}", source=source) from exc
+    try:
+        urdf = yourdfpy.URDF.load(
+            str(path), load_meshes=False, build_scene_graph=False, build_collision_scene_graph=False,
+            load_collision_meshes=False,
+        )
+    except Exception as exc:
+        raise InputError(f"yourdfpy cannot parse the URDF: {exc}", source=source) from exc
+    robot = urdf.robot
+    if robot is None or not robot.links:
+        raise InputError("the URDF has no links", source=source)
+    links = {link.name: link for link in robot.links}
+    if len(links) != len(robot.links):
+        raise InputError("a link name is used twice", source=source)
+    child_joint = {}
+    children: dict[str, list] = {name: [] for name in links}
+    for j in robot.joints:
+        el = f"joint {j.name!r}"
+        if j.parent not in links or j.child not in links:
+            raise InputError(f"joint connects unknown links {j.parent!r} -> {j.child!r}", source=source, element=el)
+        if j.child in child_joint:
+            raise InputError(f"link {j.child!r} is the child of two joints", source=source, element=el)
+        child_joint[j.child] = j
+        children[j.parent].append(j)
+    roots = [name for name in links if name not in child_joint]
+    if len(roots) != 1:
+        raise InputError(
+            f"the URDF must form one tree with one base link, found base links {roots}", source=source
+        )
+    base = roots[0]
+
+    joints, dofs = _root_joint_and_dofs()
+    joints.append(Joint(base, 0, np.eye(4)))
+    # link -> (rig joint index, offset from that joint's frame to the link frame)
+    link_frame: dict[str, tuple[int, np.ndarray]] = {base: (1, np.eye(4))}
+    stack = [base]
+    visited = {base}
+    order = [base]
+    while stack:
+        parent_link = stack.pop()
+        owner, offset = link_frame[parent_link]
+        for j in reversed(children[parent_link]):
+            el = f"joint {j.name!r}"
+            if j.child in visited:
+                raise InputError("the joint graph has a loop", source=source, element=el)
+            visited.add(j.child)
+            order.append(j.child)
+            origin = np.eye(4) if j.origin is None else np.asarray(j.origin, float)
+            if j.type == "fixed":
+                link_frame[j.child] = (owner, offset @ origin)
+            elif j.type in ("revolute", "continuous", "prismatic"):
+                axis = _unit_axis(j.axis if j.axis is not None else (1.0, 0.0, 0.0), source=source, element=el)
+                if j.type == "continuous":
+                    lower, upper = -np.pi, np.pi
+                else:
+                    limit = j.limit
+                    lower, upper = _check_limits(
+                        None if limit is None else limit.lower,
+                        None if limit is None else limit.upper,
+                        source=source,
+                        element=el,
+                    )
+                joints.append(Joint(j.child, owner, offset @ origin))
+                index = len(joints) - 1
+                kind = "translate" if j.type == "prismatic" else "rotate"
+                dofs.append(Dof(j.name, index, kind, axis, lower, upper, float(np.clip(0.0, lower, upper))))
+                link_frame[j.child] = (index, np.eye(4))
+            else:
+                raise InputError(
+                    f"joint type {j.type!r} is not supported (use revolute, continuous, prismatic or fixed)",
+                    source=source,
+                    element=el,
+                )
+            stack.append(j.child)
+    # Joints were appended depth-first, so parents come first; DOFs follow joint order.
+
+    zero, _ = _rest_frames(joints, dofs)
+    urdf_dir = path.parent
+    pieces = []
+    for link_name in order:
+        link = links[link_name]
+        owner, offset = link_frame[link_name]
+        link_world = zero[owner] @ offset
+        elements = list(link.visuals) or list(link.collisions)
+        for k, element in enumerate(elements):
+            geom = _urdf_geometry(element.geometry, urdf_dir, source=source, element=f"link {link_name!r}")
+            if geom is None:
+                continue
+            v, f = geom
+            origin = np.eye(4) if element.origin is None else np.asarray(element.origin, float)
+            pieces.append((owner, _transform_points(link_world @ origin, v), f))
+
+    renamed = _unique_names(joints)
+    metadata = {
+        "renamed_joints": renamed,
+        "source_format": "urdf",
+        "source_file": source,
+        "robot_name": robot.name,
+        "base_link": base,
+        "link_frames": {name: [joints[o].name, off.tolist()] for name, (o, off) in link_frame.items()},
+        "wrapper_resolution": wrapper_resolution,
+        "wrapper_offset": WRAPPER_OFFSET,
+    }
+    return _finish(robot.name or path.stem, joints, dofs, pieces, source, metadata, wrapper_resolution)
+
+
+# ---- MJCF ----------------------------------------------------------------------------------
+def _quat_to_matrix(q) -> np.ndarray:
+    w, x, y, z = np.asarray(q, float) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _axis_angle(axis, angle) -> np.ndarray:
+    axis = np.asarray(axis, float)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)
+
+
+def load_mjcf(path, *, root_body: str | None = None, wrapper_resolution: float = 0.002) -> Rig:
+    """Load a robot hand from a MuJoCo MJCF file (compiled by ``mujoco.MjModel``).
+
+    - The hand is the body subtree under ``root_body``; when None, the single child of the
+      world body whose subtree holds hinge/slide/ball joints (several -> InputError asking for
+      ``root_body``).
+    - One rig joint per MuJoCo joint, at the joint's anchor with the body's orientation (at
+      qpos = 0; a hinge/slide ``ref`` is folded into the frame so that our DOF value equals
+      MuJoCo's qpos). A body with several joints becomes a chain of rig joints, one per MuJoCo
+      joint in order (named ``<body>/<joint>``; a single-joint body's rig joint is named after
+      the body). Bodies without joints are **merged** into their parent's last rig joint, except
+      the root body, which becomes a DOF-less rig joint (child of the 6-DOF ``root``).
+      ``metadata["body_offsets"]`` maps every body of the hand to ``[rig joint name, 4x4
+      offset]`` (world frame of the body = ``world[joint] @ offset``).
+    - hinge -> "rotate" about ``jnt_axis``, slide -> "translate"; DOF named after the MuJoCo
+      joint. ball -> three "rotate" DOFs ``<name>_x/_y/_z`` about the joint frame's x, y, z
+      with limits [-range, range] (an Euler-angle stand-in for the ball). A free joint on the
+      root body is skipped (the 6-DOF root replaces it); elsewhere it raises InputError.
+      Limits come from ``jnt_range`` when ``jnt_limited`` (MuJoCo's ``autolimits`` sets it when
+      a range is given); an unlimited hinge/slide/ball raises InputError naming the joint.
+    - Geometry: mesh geoms (MuJoCo's compiled, re-centred ``mesh_vert``/``mesh_face`` placed by
+      the geom's compiled frame, so the re-centring is accounted for) and box, sphere, capsule,
+      cylinder, ellipsoid primitives; planes, height fields and SDFs are skipped. When the
+      subtree has pure visual geoms (contype = conaffinity = 0) only those are used (they are the
+      robot's looks; the colliding geoms duplicate them coarsely); otherwise all geoms. The same
+      geometry is ``Rig.visual`` and the wrapper's input.
+    """
+    import mujoco
+
+    path = Path(path)
+    source = str(path)
+    if not path.is_file():
+        raise InputError("MJCF file not found", source=source)
+    try:
+        model = mujoco.MjModel.from_xml_path(str(path))
+    except Exception as exc:  # mujoco raises ValueError with the compiler's message
+        raise InputError(f"MuJoCo cannot load the model: {exc}", source=source) from exc
+
+    def name_of(obj, i):
+        n = mujoco.mj_id2name(model, obj, i)
+        return n if n else f"{'body' if obj == mujoco.mjtObj.mjOBJ_BODY else 'joint'}{i}"
+
+    body_name = lambda b: name_of(mujoco.mjtObj.mjOBJ_BODY, b)  # noqa: E731
+    joint_name = lambda j: name_of(mujoco.mjtObj.mjOBJ_JOINT, j)  # noqa: E731
+    parent = model.body_parentid
+
+    def subtree(b):
+        out = [b]
+        members = {b}
+        for c in range(b + 1, model.nbody):  # bodies are ordered parents first
+            if parent[c] in members:
+                out.append(c)
+                members.add(c)
+        return out
+
+    articulated = {int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE), int(mujoco.mjtJoint.mjJNT_BALL)}
+    if root_body is None:
+        candidates = []
+        for b in range(1, model.nbody):
+            if parent[b] != 0:
+                continue
+            if any(int(model.jnt_type[j]) in articulated for j in range(model.njnt) if model.jnt_bodyid[j] in subtree(b)):
+                candidates.append(b)
+        if len(candidates) != 1:
+            names = [body_name(b) for b in candidates]
+            raise InputError(
+                f"cannot tell which body is the hand: {len(candidates)} world children have joints "
+                f"({names}); pass root_body",
+                source=source,
+            )
+        root = candidates[0]
+    else:
+        root = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, root_body)
+        if root < 0:
+            raise InputError(f"no body named {root_body!r}", source=source, element="root_body")
+        if root == 0:
+            raise InputError("root_body must not be the world body", source=source, element="root_body")
+    bodies = subtree(root)
+
+    # Kinematics at qpos = 0 (hinge/slide), identity quaternions (ball, free).
+    data = mujoco.MjData(model)
+    qpos = np.zeros(model.nq)
+    for j in range(model.njnt):
+        adr = model.jnt_qposadr[j]
+        if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_BALL:
+            qpos[adr : adr + 4] = (1, 0, 0, 0)
+        elif model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE:
+            qpos[adr : adr + 7] = model.qpos0[adr : adr + 7]
+    data.qpos[:] = qpos
+    mujoco.mj_kinematics(model, data)
+
+    joints, dofs = _root_joint_and_dofs()
+    owner = {}  # body -> rig joint carrying it
+    body_offset = {}  # body -> world frame at q = 0 (4x4)
+    world0 = [np.eye(4)]  # rig joint world frames at q = 0
+    for b in bodies:
+        bw = np.eye(4)
+        bw[:3, :3] = data.xmat[b].reshape(3, 3)
+        bw[:3, 3] = data.xpos[b]
+        body_offset[b] = bw
+        jnts = list(range(model.body_jntadr[b], model.body_jntadr[b] + model.body_jntnum[b]))
+        if any(model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE for j in jnts):
+            if b != root:
+                raise InputError(
+                    "free joints are only supported on the hand's root body",
+                    source=source,
+                    element=f"joint {joint_name(jnts[0])!r}",
+                )
+            jnts = [j for j in jnts if model.jnt_type[j] != mujoco.mjtJoint.mjJNT_FREE]
+        parent_joint = 0 if b == root else owner[parent[b]]
+        if not jnts:
+            if b == root:
+                joints.append(Joint(body_name(b), 0, bw.copy()))
+                world0.append(bw.copy())
+                owner[b] = len(joints) - 1
+            else:
+                owner[b] = parent_joint
+            continue
+        # Orientation just after each joint at q = 0, peeled back from the body's final frame.
+        rot_after = {}
+        r = bw[:3, :3].copy()
+        for j in reversed(jnts):
+            rot_after[j] = r.copy()
+            if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE:
+                r = r @ _axis_angle(model.jnt_axis[j] / np.linalg.norm(model.jnt_axis[j]), -model.qpos0[model.jnt_qposadr[j]]).T
+        for j in jnts:
+            jname = joint_name(j)
+            el = f"joint {jname!r}"
+            jtype = model.jnt_type[j]
+            if not model.jnt_limited[j]:
+                raise InputError(
+                    "joint has no range (set range=..., and limited=\"true\" when autolimits is off)",
+                    source=source,
+                    element=el,
+                )
+            lo, hi = (float(x) for x in model.jnt_range[j])
+            frame = np.eye(4)
+            frame[:3, :3] = rot_after[j]
+            frame[:3, 3] = data.xanchor[j]
+            ref = model.qpos0[model.jnt_qposadr[j]]
+            if jtype == mujoco.mjtJoint.mjJNT_SLIDE:
+                frame[:3, 3] = data.xanchor[j] - data.xaxis[j] * ref
+            index = len(joints)
+            rest_local = np.linalg.inv(world0[parent_joint]) @ frame
+            rig_name = body_name(b) if len(jnts) == 1 else f"{body_name(b)}/{jname}"
+            joints.append(Joint(rig_name, parent_joint, rest_local))
+            world0.append(frame)
+            if jtype == mujoco.mjtJoint.mjJNT_BALL:
+                lo, hi = _check_limits(-hi, hi, source=source, element=el)
+                for axis_name, axis in (("x", (1, 0, 0)), ("y", (0, 1, 0)), ("z", (0, 0, 1))):
+                    dofs.append(Dof(f"{jname}_{axis_name}", index, "rotate", np.array(axis, float), lo, hi, 0.0))
+            else:
+                lo, hi = _check_limits(lo, hi, source=source, element=el)
+                axis = _unit_axis(model.jnt_axis[j], source=source, element=el)
+                kind = "rotate" if jtype == mujoco.mjtJoint.mjJNT_HINGE else "translate"
+                dofs.append(Dof(jname, index, kind, axis, lo, hi, float(np.clip(0.0, lo, hi))))
+            parent_joint = index
+        owner[b] = parent_joint
+
+    # Geometry at q = 0.
+    geoms = [g for g in range(model.ngeom) if model.geom_bodyid[g] in owner]
+    visual_only = [g for g in geoms if model.geom_contype[g] == 0 and model.geom_conaffinity[g] == 0]
+    use = visual_only or geoms
+    pieces = []
+    gt = mujoco.mjtGeom
+    for g in use:
+        kind = model.geom_type[g]
+        if kind == gt.mjGEOM_MESH:
+            m = model.geom_dataid[g]
+            va, vn = model.mesh_vertadr[m], model.mesh_vertnum[m]
+            fa, fn = model.mesh_faceadr[m], model.mesh_facenum[m]
+            v = np.asarray(model.mesh_vert[va : va + vn], float)
+            f = np.asarray(model.mesh_face[fa : fa + fn], np.int64)
+        elif kind == gt.mjGEOM_BOX:
+            v, f = _primitive("box", 2 * model.geom_size[g])
+        elif kind == gt.mjGEOM_SPHERE:
+            v, f = _primitive("sphere", model.geom_size[g])
+        elif kind == gt.mjGEOM_ELLIPSOID:
+            v, f = _primitive("ellipsoid", model.geom_size[g])
+        elif kind == gt.mjGEOM_CAPSULE:
+            v, f = _primitive("capsule", (model.geom_size[g][0], 2 * model.geom_size[g][1]))
+        elif kind == gt.mjGEOM_CYLINDER:
+            v, f = _primitive("cylinder", (model.geom_size[g][0], 2 * model.geom_size[g][1]))
+        else:  # plane, hfield, sdf
+            continue
+        gw = np.eye(4)
+        gw[:3, :3] = data.geom_xmat[g].reshape(3, 3)
+        gw[:3, 3] = data.geom_xpos[g]
+        # The geom moves with its body's rig joint; place it at q = 0 of our rig (identical to
+        # MuJoCo's frames at qpos = 0 computed above).
+        pieces.append((owner[model.geom_bodyid[g]], _transform_points(gw, v), f))
+
+    renamed = _unique_names(joints)
+    metadata = {
+        "renamed_joints": renamed,
+        "source_format": "mjcf",
+        "source_file": source,
+        "root_body": body_name(root),
+        "body_joints": {body_name(b): joints[o].name for b, o in owner.items()},
+        "body_offsets": {
+            body_name(b): [joints[o].name, (np.linalg.inv(world0[o]) @ body_offset[b]).tolist()]
+            for b, o in owner.items()
+        },
+        "geometry": "visual geoms (contype=conaffinity=0)" if visual_only else "all geoms",
+        "wrapper_resolution": wrapper_resolution,
+        "wrapper_offset": WRAPPER_OFFSET,
+    }
+    name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, root) or path.stem
+    return _finish(name, joints, dofs, pieces, source, metadata, wrapper_resolution)
