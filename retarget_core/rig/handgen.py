@@ -25,7 +25,7 @@ import numpy as np
 from ..errors import InputError
 from ..mesh.implicit import rounded_box, smooth_union, tapered_capsule
 from ..mesh.isosurface import closed_surface_from_field, sample_grid
-from .model import Dof, Joint, Rig, SkinnedMesh
+from .model import ROOT_TRANSLATION_LIMIT, Dof, Joint, Rig, SkinnedMesh, free_root
 
 #: DOF name -> axis in the joint frame (see module docstring).
 JOINT_AXES = {"flex": "-x", "abduct": "z", "twist": "y"}
@@ -98,7 +98,7 @@ class HandSpec:
     style: str = "organic"
     blend: float = 0.006
     resolution: float = 0.002
-    root_translation_limit: float = 2.0
+    root_translation_limit: float = ROOT_TRANSLATION_LIMIT
     metadata: dict = field(default_factory=dict)
 
 
@@ -138,15 +138,10 @@ class _Bone:
 def build_hand(spec: HandSpec) -> Rig:
     """Build the rig described by ``spec``: joints, DOFs, surface and skin weights."""
     joints: list[Joint] = []
-    dofs: list[Dof] = []
     bones: list[_Bone] = []
 
-    lim = spec.root_translation_limit
-    joints.append(Joint("root", -1, np.eye(4)))
-    for axis_name, axis in (("tx", (1, 0, 0)), ("ty", (0, 1, 0)), ("tz", (0, 0, 1))):
-        dofs.append(Dof(f"root_{axis_name}", 0, "translate", np.array(axis, float), -lim, lim, 0.0))
-    for axis_name, axis in (("rx", (1, 0, 0)), ("ry", (0, 1, 0)), ("rz", (0, 0, 1))):
-        dofs.append(Dof(f"root_{axis_name}", 0, "rotate", np.array(axis, float), -2 * np.pi, 2 * np.pi, 0.0))
+    root, dofs = free_root(spec.root_translation_limit)
+    joints.append(root)
 
     palm_joint = 0
     if spec.wrist is not None:

@@ -30,6 +30,10 @@ NAMED_AXES = {
 
 DOF_KINDS = ("rotate", "translate")
 
+#: Limits of the free root: translations in metres, rotations in radians.
+ROOT_TRANSLATION_LIMIT = 2.0
+ROOT_ROTATION_LIMIT = 2 * np.pi
+
 
 def parse_axis(axis, *, element: str = "", source: str = "") -> np.ndarray:
     """A unit 3-vector from a name ("x", "-z") or three numbers."""
@@ -83,6 +87,18 @@ class Dof:
     lower: float
     upper: float
     rest: float = 0.0
+
+
+def free_root(translation_limit: float = ROOT_TRANSLATION_LIMIT) -> tuple["Joint", list["Dof"]]:
+    """The 6-DOF root every hand gets: joint "root" at the world origin with DOFs
+    root_tx, root_ty, root_tz (translate) then root_rx, root_ry, root_rz (rotate), world axes."""
+    joint = Joint("root", -1, np.eye(4))
+    dofs = []
+    for name, axis in (("tx", (1, 0, 0)), ("ty", (0, 1, 0)), ("tz", (0, 0, 1))):
+        dofs.append(Dof(f"root_{name}", 0, "translate", np.array(axis, float), -translation_limit, translation_limit, 0.0))
+    for name, axis in (("rx", (1, 0, 0)), ("ry", (0, 1, 0)), ("rz", (0, 0, 1))):
+        dofs.append(Dof(f"root_{name}", 0, "rotate", np.array(axis, float), -ROOT_ROTATION_LIMIT, ROOT_ROTATION_LIMIT, 0.0))
+    return joint, dofs
 
 
 @dataclass

@@ -25,25 +25,13 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .model import Dof, Joint, Rig, SkinnedMesh
+from .model import Dof, Joint, Rig, SkinnedMesh, free_root
 from .wrapper import build_wrapper
 
-ROOT_TRANSLATION_LIMIT = 2.0
 WRAPPER_OFFSET = 0.0015
 
 
 # ---- shared helpers ------------------------------------------------------------------------
-def _root_joint_and_dofs():
-    joints = [Joint("root", -1, np.eye(4))]
-    dofs = []
-    lim = ROOT_TRANSLATION_LIMIT
-    for axis_name, axis in (("tx", (1, 0, 0)), ("ty", (0, 1, 0)), ("tz", (0, 0, 1))):
-        dofs.append(Dof(f"root_{axis_name}", 0, "translate", np.array(axis, float), -lim, lim, 0.0))
-    for axis_name, axis in (("rx", (1, 0, 0)), ("ry", (0, 1, 0)), ("rz", (0, 0, 1))):
-        dofs.append(Dof(f"root_{axis_name}", 0, "rotate", np.array(axis, float), -2 * np.pi, 2 * np.pi, 0.0))
-    return joints, dofs
-
-
 def _unique_names(joints) -> dict[str, str]:
     """Rename robot joints whose name clashes with an earlier one (the added ``root`` first)
     by appending ``_link`` (then ``_link2``...). Returns {new name: original name}."""
@@ -270,7 +258,8 @@ def load_urdf(path, *, wrapper_resolution: float = 0.002) -> Rig:
         )
     base = roots[0]
 
-    joints, dofs = _root_joint_and_dofs()
+    root_joint, dofs = free_root()
+    joints = [root_joint]
     joints.append(Joint(base, 0, np.eye(4)))
     # link -> (rig joint index, offset from that joint's frame to the link frame)
     link_frame: dict[str, tuple[int, np.ndarray]] = {base: (1, np.eye(4))}
@@ -454,7 +443,8 @@ def load_mjcf(path, *, root_body: str | None = None, wrapper_resolution: float =
     data.qpos[:] = qpos
     mujoco.mj_kinematics(model, data)
 
-    joints, dofs = _root_joint_and_dofs()
+    root_joint, dofs = free_root()
+    joints = [root_joint]
     owner = {}  # body -> rig joint carrying it
     body_offset = {}  # body -> world frame at q = 0 (4x4)
     world0 = [np.eye(4)]  # rig joint world frames at q = 0
