@@ -607,34 +607,41 @@ def read_rig_usd(path) -> Rig:
 
 # ---- compliance ----------------------------------------------------------------------------
 def check_usd_compliance(path, *, include_warnings: bool = False) -> list[str]:
-    """Run USD's compliance checks on a file and return the problems found ([] = compliant).
+    """Run USD's own compliance checks on a file; return the problems found ([] = compliant).
 
-    Uses ``pxr.UsdUtils.ComplianceChecker`` (default rules, not ARKit) where the installed USD
-    still has it; USD 26 removed it in favour of the UsdValidation framework, in which case
-    every registered validator runs (this covers the former default rules: stage metadata,
-    prim encapsulation, SkelBindingAPI / MaterialBindingAPI application, missing references,
-    package layout, ...). Errors are returned; warnings too when ``include_warnings``."""
+    Runs ``pxr.UsdUtils.ComplianceChecker`` (default rules, not ARKit) where the installed USD
+    has it (it was removed in USD 26; the project pins usd-core below 26 so it is there), and
+    every validator of the newer UsdValidation framework where that exists (stage metadata,
+    prim encapsulation, SkelBindingAPI application, missing references, ...). Errors and
+    failed checks are returned; warnings too when ``include_warnings``."""
     path = Path(path)
     src = str(path)
     if not path.is_file():
         raise InputError("file not found", source=src)
     from pxr import UsdUtils
 
+    problems: list[str] = []
     checker_cls = getattr(UsdUtils, "ComplianceChecker", None)
-    if checker_cls is not None:  # USD < 26
+    if checker_cls is not None:
         checker = checker_cls(arkit=False, skipARKitRootLayerCheck=False, rootPackageOnly=False)
         checker.CheckCompliance(src)
-        problems = list(checker.GetErrors()) + list(checker.GetFailedChecks())
+        found = list(checker.GetErrors()) + list(checker.GetFailedChecks())
         if include_warnings:
-            problems += list(checker.GetWarnings())
-        return [str(p) for p in problems]
+            found += list(checker.GetWarnings())
+        problems += [str(p) for p in found]
 
-    from pxr import UsdValidation
-
-    stage = _open_stage(path)
-    registry = UsdValidation.ValidationRegistry()
-    context = UsdValidation.ValidationContext(registry.GetOrLoadAllValidators())
-    wanted = {UsdValidation.ValidationErrorType.Error}
-    if include_warnings:
-        wanted.add(UsdValidation.ValidationErrorType.Warn)
-    return [e.GetErrorAsString() for e in context.Validate(stage) if e.GetType() in wanted]
+    try:
+        from pxr import UsdValidation
+    except ImportError:  # USD older than the validation framework
+        UsdValidation = None
+    if UsdValidation is not None:
+        stage = _open_stage(path)
+        registry = UsdValidation.ValidationRegistry()
+        context = UsdValidation.ValidationContext(registry.GetOrLoadAllValidators())
+        wanted = {UsdValidation.ValidationErrorType.Error}
+        if include_warnings:
+            wanted.add(UsdValidation.ValidationErrorType.Warn)
+        problems += [e.GetErrorAsString() for e in context.Validate(stage) if e.GetType() in wanted]
+    if checker_cls is None and UsdValidation is None:
+        raise RuntimeError("this USD build has neither ComplianceChecker nor UsdValidation")
+    return problems
