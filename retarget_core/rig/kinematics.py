@@ -266,8 +266,13 @@ class Kinematics:
         du = self._lever_maps(pose)[:, :, :3] @ sums[self.dof_joint]  # (D, 3, P)
         length = np.sqrt(np.einsum("ap,ap->p", u, u))
         n = u / length
-        radial = (du * n).sum(axis=1, keepdims=True)  # (D, 1, P)
-        dn = (du - radial * n) / length
+        # dn = (I - n n^T) du / |u|, written out per component to avoid large temporaries.
+        radial = du[:, 0] * n[0]
+        radial += du[:, 1] * n[1]
+        radial += du[:, 2] * n[2]
+        dn = radial[:, None, :] * n
+        np.subtract(du, dn, out=dn)
+        dn *= 1.0 / length
         return n.T, dn.transpose(2, 1, 0)
 
     def skin(self, pose: Pose | np.ndarray, mesh: str = "surface") -> np.ndarray:
