@@ -48,3 +48,10 @@ def test_console_script_runs_as_a_real_process(demo_dir):
     )
     assert result.returncode == 0, result.stderr
     assert "DOFs: 22" in result.stdout
+
+
+def test_every_demo_hand_file_passes_usd_compliance(demo_dir):
+    from retarget_core.rig.usd_io import check_usd_compliance
+
+    for path in sorted(demo_dir.glob("*.usda")):
+        assert check_usd_compliance(path) == [], path.name
