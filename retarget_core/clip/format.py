@@ -1,0 +1,321 @@
+"""The source clip: one captured (or generated) hand-object demonstration.
+
+Stored as an ``.npz`` read with ``allow_pickle=False`` (so a clip file can never run code).
+Every array has a fixed name, dtype and shape; :meth:`Clip.validate` names the first bad field
+(and frame). Units: metres, seconds; world frame is Z-up. Version 1 fields:
+
+==================== ============ ===============================================================
+field                shape        meaning
+==================== ============ ===============================================================
+format               ()           the string "handretarget.clip"
+version              ()           1
+fps                  ()           frames per second (float64)
+hand_faces           (Fh, 3)      source hand triangles (int32)
+hand_vertices        (T, Vh, 3)   source hand vertices per frame, world (float32)
+object_vertices      (Vo, 3)      object mesh in its own frame (float64)
+object_faces         (Fo, 3)      object triangles (int32)
+object_poses         (T, 4, 4)    rigid world-from-object transform per frame (float64)
+contact_labels       (T, Vo)      per-frame contact code of each object vertex, GRAB's
+                                  convention: 0 = none, 22 = right palm, 41-55 = right fingers
+                                  (uint8)
+table_pose           (4, 4)       optional: world-from-table-box transform; the box is centred on
+                                  its frame's origin, so its top is at +table_half_extents[2]
+table_half_extents   (3,)         optional, with table_pose
+marker_names         (M,)         optional source virtual markers: names (unicode)
+marker_faces         (M,)         ... on the source hand mesh: face index (int32)
+marker_barycentric   (M, 3)       ... and barycentric coordinates (float64)
+dof_names            (D,)         optional ground truth of a generated clip: source rig DOFs
+dof_values           (T, D)       ... their values per frame (float64)
+source_rig           ()           optional: which rig made the clip (e.g. "demo:source_human@0.005")
+object_name          ()           e.g. "bottle"
+motion               ()           e.g. "pick_place"
+source               ()           provenance, e.g. "demo" or "grab:s1/apple_eat_1"
+==================== ============ ===============================================================
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import zipfile
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+
+CLIP_FORMAT = "handretarget.clip"
+CLIP_VERSION = 1
+
+#: GRAB's right-hand contact codes (22 = palm/hand, 41-55 = the 15 finger segments).
+RIGHT_HAND_CONTACT_CODES = frozenset([22, *range(41, 56)])
+
+
+@dataclass
+class Clip:
+    """An in-memory clip; see the module docstring for every field."""
+
+    fps: float
+    hand_faces: np.ndarray
+    hand_vertices: np.ndarray
+    object_vertices: np.ndarray
+    object_faces: np.ndarray
+    object_poses: np.ndarray
+    contact_labels: np.ndarray
+    table_pose: np.ndarray | None = None
+    table_half_extents: np.ndarray | None = None
+    marker_names: list[str] = field(default_factory=list)
+    marker_faces: np.ndarray | None = None
+    marker_barycentric: np.ndarray | None = None
+    dof_names: list[str] = field(default_factory=list)
+    dof_values: np.ndarray | None = None
+    source_rig: str = ""
+    object_name: str = ""
+    motion: str = ""
+    source: str = ""
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.hand_vertices.shape[0])
+
+    @property
+    def duration(self) -> float:
+        """Seconds."""
+        return self.n_frames / float(self.fps)
+
+    @property
+    def has_table(self) -> bool:
+        return self.table_pose is not None
+
+    def object_world_vertices(self, frame: int) -> np.ndarray:
+        """(Vo, 3) object vertices in world coordinates at ``frame``."""
+        pose = self.object_poses[frame]
+        return self.object_vertices @ pose[:3, :3].T + pose[:3, 3]
+
+    def contact_vertex_ids(self, frame: int) -> np.ndarray:
+        """Object vertex ids labelled as contact at ``frame``."""
+        return np.nonzero(self.contact_labels[frame])[0]
+
+    def markers(self) -> dict[str, tuple[int, np.ndarray]]:
+        """{marker name: (face, barycentric (3,))} on the source hand."""
+        if self.marker_faces is None:
+            return {}
+        return {n: (int(f), self.marker_barycentric[i]) for i, (n, f) in enumerate(zip(self.marker_names, self.marker_faces))}
+
+    def slice(self, start: int, stop: int) -> "Clip":
+        """Frames [start, stop) as a new clip."""
+        sub = {f.name: getattr(self, f.name) for f in fields(self)}
+        for name in ("hand_vertices", "object_poses", "contact_labels", "dof_values"):
+            if sub[name] is not None:
+                sub[name] = sub[name][start:stop]
+        return Clip(**sub)
+
+    # ---- validation --------------------------------------------------------------------------
+    def validate(self, *, source: str = "") -> None:
+        """Raise InputError naming the field (and frame) of the first problem found."""
+        src = source
+
+        def bad(field_name: str, message: str):
+            raise InputError(message, source=src, element=field_name)
+
+        fps = float(self.fps) if np.ndim(self.fps) == 0 else float("nan")
+        if not np.isfinite(fps) or fps <= 0:
+            bad("fps", f"must be a positive number, got {self.fps!r}")
+
+        hv = self.hand_vertices
+        if not isinstance(hv, np.ndarray) or hv.ndim != 3 or hv.shape[2] != 3 or hv.shape[0] < 1:
+            bad("hand_vertices", f"must have shape (T, Vh, 3), got {getattr(hv, 'shape', None)}")
+        n_frames, n_hand = hv.shape[0], hv.shape[1]
+        _check_faces(self.hand_faces, n_hand, "hand_faces", src)
+        _check_finite_frames(hv, "hand_vertices", src)
+
+        ov = self.object_vertices
+        if not isinstance(ov, np.ndarray) or ov.ndim != 2 or ov.shape[1] != 3 or len(ov) < 4:
+            bad("object_vertices", f"must have shape (Vo, 3) with Vo >= 4, got {getattr(ov, 'shape', None)}")
+        if not np.all(np.isfinite(ov)):
+            bad("object_vertices", "contains NaN or inf")
+        _check_faces(self.object_faces, len(ov), "object_faces", src)
+
+        poses = self.object_poses
+        if not isinstance(poses, np.ndarray) or poses.shape != (n_frames, 4, 4):
+            bad("object_poses", f"must have shape (T={n_frames}, 4, 4) like hand_vertices, got {getattr(poses, 'shape', None)}")
+        _check_finite_frames(poses, "object_poses", src)
+        _check_rigid(poses, "object_poses", src)
+
+        labels = self.contact_labels
+        if not isinstance(labels, np.ndarray) or labels.shape != (n_frames, len(ov)):
+            bad("contact_labels", f"must have shape (T={n_frames}, Vo={len(ov)}), got {getattr(labels, 'shape', None)}")
+        if not np.issubdtype(labels.dtype, np.integer):
+            bad("contact_labels", f"must be integers, got dtype {labels.dtype}")
+        codes = np.unique(labels)
+        unknown = [int(c) for c in codes if c != 0 and int(c) not in RIGHT_HAND_CONTACT_CODES]
+        if unknown:
+            frame = int(np.nonzero(np.isin(labels, unknown).any(axis=1))[0][0])
+            bad("contact_labels", f"frame {frame}: code {unknown[0]} is not a right-hand contact code (0, 22, 41-55)")
+
+        if (self.table_pose is None) != (self.table_half_extents is None):
+            bad("table_pose", "table_pose and table_half_extents go together")
+        if self.table_pose is not None:
+            tp = np.asarray(self.table_pose)
+            if tp.shape != (4, 4) or not np.all(np.isfinite(tp)):
+                bad("table_pose", f"must be a finite 4x4 matrix, got shape {tp.shape}")
+            _check_rigid(tp[None], "table_pose", src, per_frame=False)
+            he = np.asarray(self.table_half_extents)
+            if he.shape != (3,) or not np.all(np.isfinite(he)) or np.any(he <= 0):
+                bad("table_half_extents", f"must be 3 positive numbers, got {he!r}")
+
+        if self.marker_faces is not None or self.marker_names:
+            mf, mb = self.marker_faces, self.marker_barycentric
+            m = len(self.marker_names)
+            if mf is None or mb is None or np.shape(mf) != (m,) or np.shape(mb) != (m, 3):
+                bad("marker_faces", f"marker_names, marker_faces (M,) and marker_barycentric (M, 3) must agree (M={m})")
+            if len(set(self.marker_names)) != m:
+                bad("marker_names", "a marker name is used twice")
+            if m and (mf.min() < 0 or mf.max() >= len(self.hand_faces)):
+                bad("marker_faces", f"face index out of range [0, {len(self.hand_faces)})")
+            if m and (not np.all(np.isfinite(mb)) or np.abs(mb.sum(axis=1) - 1).max() > 1e-6 or mb.min() < -1e-6):
+                bad("marker_barycentric", "rows must be non-negative and sum to 1")
+
+        if self.dof_values is not None or self.dof_names:
+            dv = self.dof_values
+            if dv is None or dv.shape != (n_frames, len(self.dof_names)):
+                bad("dof_values", f"must have shape (T={n_frames}, D={len(self.dof_names)}), got {getattr(dv, 'shape', None)}")
+            _check_finite_frames(dv, "dof_values", src)
+
+    # ---- files ---------------------------------------------------------------------------------
+    def save(self, path) -> None:
+        """Write an .npz (compressed) atomically: a temp file in the same folder, then rename."""
+        self.validate(source=str(path))
+        path = Path(path)
+        arrays = {
+            "format": np.array(CLIP_FORMAT),
+            "version": np.array(CLIP_VERSION),
+            "fps": np.array(float(self.fps)),
+            "hand_faces": np.asarray(self.hand_faces, dtype=np.int32),
+            "hand_vertices": np.asarray(self.hand_vertices, dtype=np.float32),
+            "object_vertices": np.asarray(self.object_vertices, dtype=np.float64),
+            "object_faces": np.asarray(self.object_faces, dtype=np.int32),
+            "object_poses": np.asarray(self.object_poses, dtype=np.float64),
+            "contact_labels": np.asarray(self.contact_labels, dtype=np.uint8),
+            "source_rig": np.array(self.source_rig),
+            "object_name": np.array(self.object_name),
+            "motion": np.array(self.motion),
+            "source": np.array(self.source),
+        }
+        if self.table_pose is not None:
+            arrays["table_pose"] = np.asarray(self.table_pose, dtype=np.float64)
+            arrays["table_half_extents"] = np.asarray(self.table_half_extents, dtype=np.float64)
+        if self.marker_faces is not None:
+            arrays["marker_names"] = np.array(self.marker_names, dtype=np.str_)
+            arrays["marker_faces"] = np.asarray(self.marker_faces, dtype=np.int32)
+            arrays["marker_barycentric"] = np.asarray(self.marker_barycentric, dtype=np.float64)
+        if self.dof_values is not None:
+            arrays["dof_names"] = np.array(self.dof_names, dtype=np.str_)
+            arrays["dof_values"] = np.asarray(self.dof_values, dtype=np.float64)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npz.tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as handle:
+                np.savez_compressed(handle, **arrays)
+            os.chmod(tmp, 0o644)
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+
+
+_REQUIRED = ("format", "version", "fps", "hand_faces", "hand_vertices", "object_vertices", "object_faces",
+             "object_poses", "contact_labels")
+
+
+def load_clip(path, *, validate: bool = True) -> Clip:
+    """Read a clip .npz (never unpickling anything) and validate it."""
+    path = Path(path)
+    src = str(path)
+    if not path.is_file():
+        raise InputError("no such file", source=src)
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as err:
+        raise InputError(f"not a clip .npz file ({err})", source=src) from err
+    with data:
+        missing = [k for k in _REQUIRED if k not in data.files]
+        if missing:
+            raise InputError("required field is missing", source=src, element=missing[0])
+
+        def get(key):
+            try:
+                return data[key]
+            except ValueError as err:  # object arrays need pickle: refuse them
+                raise InputError(f"field holds Python objects, which clips never do ({err})", source=src, element=key) from err
+
+        fmt = str(get("format"))
+        if fmt != CLIP_FORMAT:
+            raise InputError(f"not a Hand Retarget clip (format {fmt!r})", source=src, element="format")
+        version = int(get("version"))
+        if version != CLIP_VERSION:
+            raise InputError(f"clip version {version} is not supported (this build reads {CLIP_VERSION})", source=src, element="version")
+
+        def text(key):
+            return str(get(key)) if key in data.files else ""
+
+        clip = Clip(
+            fps=float(get("fps")),
+            hand_faces=get("hand_faces").astype(np.int64),
+            hand_vertices=get("hand_vertices"),
+            object_vertices=get("object_vertices").astype(np.float64),
+            object_faces=get("object_faces").astype(np.int64),
+            object_poses=get("object_poses").astype(np.float64),
+            contact_labels=get("contact_labels"),
+            table_pose=get("table_pose") if "table_pose" in data.files else None,
+            table_half_extents=get("table_half_extents") if "table_half_extents" in data.files else None,
+            marker_names=[str(s) for s in get("marker_names")] if "marker_names" in data.files else [],
+            marker_faces=get("marker_faces").astype(np.int64) if "marker_faces" in data.files else None,
+            marker_barycentric=get("marker_barycentric") if "marker_barycentric" in data.files else None,
+            dof_names=[str(s) for s in get("dof_names")] if "dof_names" in data.files else [],
+            dof_values=get("dof_values") if "dof_values" in data.files else None,
+            source_rig=text("source_rig"),
+            object_name=text("object_name"),
+            motion=text("motion"),
+            source=text("source"),
+        )
+    if validate:
+        clip.validate(source=src)
+    return clip
+
+
+def _check_faces(faces, n_vertices: int, name: str, src: str) -> None:
+    if not isinstance(faces, np.ndarray) or faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+        raise InputError(f"must have shape (F, 3), got {getattr(faces, 'shape', None)}", source=src, element=name)
+    if not np.issubdtype(faces.dtype, np.integer):
+        raise InputError(f"must be integers, got dtype {faces.dtype}", source=src, element=name)
+    if faces.min() < 0 or faces.max() >= n_vertices:
+        row = int(np.nonzero((faces < 0).any(axis=1) | (faces >= n_vertices).any(axis=1))[0][0])
+        raise InputError(
+            f"face {row} has vertex index {faces[row].tolist()} out of range [0, {n_vertices})", source=src, element=name
+        )
+
+
+def _check_finite_frames(array: np.ndarray, name: str, src: str) -> None:
+    finite = np.isfinite(array).reshape(len(array), -1).all(axis=1)
+    if not finite.all():
+        frame = int(np.nonzero(~finite)[0][0])
+        raise InputError(f"frame {frame} contains NaN or inf", source=src, element=name)
+
+
+def _check_rigid(poses: np.ndarray, name: str, src: str, *, per_frame: bool = True, tol: float = 1e-5) -> None:
+    rot = poses[:, :3, :3]
+    ortho = np.abs(np.einsum("fji,fjk->fik", rot, rot) - np.eye(3)).reshape(len(poses), -1).max(axis=1)
+    det = np.linalg.det(rot)
+    bottom = np.abs(poses[:, 3] - [0, 0, 0, 1]).max(axis=1)
+    bad = (ortho > tol) | (det < 0) | (bottom > 1e-9)
+    if bad.any():
+        i = int(np.nonzero(bad)[0][0])
+        where = f"frame {i}: " if per_frame else ""
+        raise InputError(
+            f"{where}not a rigid transform (rotation part off orthonormal by {ortho[i]:.2g}, det {det[i]:.3g})",
+            source=src,
+            element=name,
+        )
