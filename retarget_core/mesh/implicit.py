@@ -33,3 +33,22 @@ def smooth_union(d1: np.ndarray, d2: np.ndarray, k: float) -> np.ndarray:
         return np.minimum(d1, d2)
     h = np.clip(0.5 + 0.5 * (d2 - d1) / k, 0.0, 1.0)
     return d2 + (d1 - d2) * h - k * h * (1.0 - h)
+
+
+def capped_cylinder(points: np.ndarray, radius: float, z0: float, z1: float, rounding: float = 0.0) -> np.ndarray:
+    """Cylinder about the Z axis from z0 to z1 with the given radius; edges rounded by ``rounding``."""
+    radial = np.linalg.norm(points[:, :2], axis=1) - (radius - rounding)
+    axial = np.abs(points[:, 2] - 0.5 * (z0 + z1)) - (0.5 * (z1 - z0) - rounding)
+    outside = np.sqrt(np.maximum(radial, 0.0) ** 2 + np.maximum(axial, 0.0) ** 2)
+    return outside + np.minimum(np.maximum(radial, axial), 0.0) - rounding
+
+
+def sphere(points: np.ndarray, center, radius: float) -> np.ndarray:
+    return np.linalg.norm(points - np.asarray(center, float), axis=1) - radius
+
+
+def torus_xz(points: np.ndarray, center, major: float, minor: float) -> np.ndarray:
+    """Torus whose ring lies in the XZ plane around ``center``."""
+    p = points - np.asarray(center, float)
+    ring = np.sqrt(p[:, 0] ** 2 + p[:, 2] ** 2) - major
+    return np.sqrt(ring**2 + p[:, 1] ** 2) - minor

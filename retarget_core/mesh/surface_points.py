@@ -81,3 +81,33 @@ class SurfacePoints:
         """(P, 3) positions on a mesh with vertices (V, 3) and faces (F, 3)."""
         corners = np.asarray(vertices)[np.asarray(mesh_faces)[self.faces]]  # (P, 3, 3)
         return np.einsum("pk,pkd->pd", self.barycentric, corners)
+
+
+def closest_surface_points(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> SurfacePoints:
+    """The surface points of a mesh closest to query points (N, 3), as (face, barycentric)."""
+    import igl
+
+    vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    points = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+    _, face, closest = igl.point_mesh_squared_distance(points, vertices, faces)
+    face = np.asarray(face, dtype=np.int64)
+    return SurfacePoints(face, barycentric_of(vertices[faces[face]], closest))
+
+
+def barycentric_of(triangles: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N, 3) barycentric coordinates of points (N, 3) in triangles (N, 3, 3), clipped to the
+    triangle and renormalised (points are expected on or very near their triangle)."""
+    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+    v0, v1, v2 = b - a, c - a, points - a
+    d00 = np.einsum("ij,ij->i", v0, v0)
+    d01 = np.einsum("ij,ij->i", v0, v1)
+    d11 = np.einsum("ij,ij->i", v1, v1)
+    d20 = np.einsum("ij,ij->i", v2, v0)
+    d21 = np.einsum("ij,ij->i", v2, v1)
+    denom = d00 * d11 - d01 * d01
+    denom = np.where(np.abs(denom) < 1e-300, 1e-300, denom)
+    v = (d11 * d20 - d01 * d21) / denom
+    w = (d00 * d21 - d01 * d20) / denom
+    bary = np.clip(np.column_stack([1.0 - v - w, v, w]), 0.0, None)
+    return bary / bary.sum(axis=1, keepdims=True)

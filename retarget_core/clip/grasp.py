@@ -1,0 +1,231 @@
+"""Grasp synthesis for demonstration clips: place the palm against an object, then close each
+finger until its links touch the surface (the classic "autograsp": when a link touches, its
+joint and every joint before it stop, the joints after it keep closing).
+
+Works on any generated hand whose finger joints are named ``<finger><k>`` with a
+``<finger><k>_flex`` DOF (see :mod:`retarget_core.rig.handgen`). Obstacles are signed
+distance functions in world coordinates (negative inside).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from ..mesh.surface_points import SurfacePoints
+from ..rig.model import Rig
+
+Sdf = Callable[[np.ndarray], np.ndarray]
+
+FINGER_NAMES = ("thumb", "index", "middle", "ring", "pinky")
+
+
+# ---- the free root as a rigid transform -------------------------------------------------------
+def euler_xyz_from_matrix(rotation: np.ndarray) -> np.ndarray:
+    """Angles (a, b, c) with rotation = Rx(a) @ Ry(b) @ Rz(c) (the root's DOF order); at gimbal
+    lock (b = +-90 degrees) c is set to 0."""
+    r = np.asarray(rotation, dtype=np.float64)
+    sb = np.clip(r[0, 2], -1.0, 1.0)
+    b = np.arcsin(sb)
+    if abs(sb) < 1.0 - 1e-9:
+        a = np.arctan2(-r[1, 2], r[2, 2])
+        c = np.arctan2(-r[0, 1], r[0, 0])
+    else:  # Rx(a) Ry(+-pi/2): only a +- c is defined; take c = 0
+        a = np.arctan2(r[2, 1], r[1, 1])
+        b = np.copysign(np.pi / 2, sb)
+        c = 0.0
+    return np.array([a, b, c])
+
+
+def set_root_transform(rig: Rig, q: np.ndarray, transform: np.ndarray) -> np.ndarray:
+    """A copy of q whose six root DOFs put the root joint at ``transform`` (4, 4), world.
+    Assumes the free root of :func:`retarget_core.rig.model.free_root` with an identity rest."""
+    q = np.array(q, dtype=np.float64)
+    names = rig.dof_names[:6]
+    if names != ["root_tx", "root_ty", "root_tz", "root_rx", "root_ry", "root_rz"]:
+        raise ValueError(f"rig {rig.name!r} does not start with the standard free root DOFs")
+    q[0:3] = transform[:3, 3]
+    q[3:6] = euler_xyz_from_matrix(transform[:3, :3])
+    return q
+
+
+def root_transform(rig: Rig, q: np.ndarray) -> np.ndarray:
+    """(4, 4) world transform of the root joint at q."""
+    return rig.kinematics().pose(q).world[0]
+
+
+def frame_from_directions(palm_direction, finger_direction) -> np.ndarray:
+    """Hand-frame rotation (3, 3) whose -Z (the palm normal) points along ``palm_direction``
+    and whose +Y (the fingers) points along ``finger_direction`` (orthogonalised)."""
+    z = -np.asarray(palm_direction, float)
+    z /= np.linalg.norm(z)
+    y = np.asarray(finger_direction, float)
+    y = y - (y @ z) * z
+    y /= np.linalg.norm(y)
+    return np.column_stack([np.cross(y, z), y, z])
+
+
+# ---- fingers -----------------------------------------------------------------------------------
+@dataclass
+class Finger:
+    """One finger chain: joint indices, their flex DOF indices, and the surface vertices each
+    joint's link owns (vertex ids whose largest skin weight is that joint)."""
+
+    name: str
+    joints: list[int]
+    flex_dofs: list[int]
+    link_vertices: list[np.ndarray]
+    closing_rate: np.ndarray = field(default_factory=lambda: np.ones(0))
+
+
+def hand_fingers(rig: Rig) -> list[Finger]:
+    """The fingers of a generated hand, in FINGER_NAMES order."""
+    dense = rig.surface.dense_weights(rig.n_joints)
+    owner = dense.argmax(axis=1)
+    fingers = []
+    for name in FINGER_NAMES:
+        joints, flex = [], []
+        k = 1
+        while True:
+            jname = f"{name}{k}"
+            if jname not in rig.joint_names:
+                break
+            j = rig.joint_index(jname)
+            joints.append(j)
+            flex.append(rig.dof_index(f"{jname}_flex") if f"{jname}_flex" in rig.dof_names else -1)
+            k += 1
+        if joints:
+            rate = np.linspace(0.8, 1.1, len(joints)) if name != "thumb" else np.linspace(0.7, 1.0, len(joints))
+            fingers.append(Finger(name, joints, flex, [np.nonzero(owner == j)[0] for j in joints], rate))
+    return fingers
+
+
+def palm_vertices(rig: Rig) -> np.ndarray:
+    """Ids of surface vertices owned by the palm joint ("wrist", else the root) on the palm side
+    (normal within 45 degrees of -Z in the hand frame)."""
+    dense = rig.surface.dense_weights(rig.n_joints)
+    palm_joint = rig.joint_index("wrist") if "wrist" in rig.joint_names else 0
+    normals = rig.surface.vertex_normals()
+    return np.nonzero((dense.argmax(axis=1) == palm_joint) & (normals[:, 2] < -0.7))[0]
+
+
+def palm_center(rig: Rig) -> np.ndarray:
+    """(3,) centre of the palm surface at rest, hand frame."""
+    return rig.surface.vertices[palm_vertices(rig)].mean(axis=0)
+
+
+class _Skinner:
+    """Skins a fixed subset of surface vertices quickly (binding built once)."""
+
+    def __init__(self, rig: Rig, vertex_ids: np.ndarray):
+        self.kin = rig.kinematics()
+        self.binding = self.kin.bind(SurfacePoints.from_vertices(vertex_ids, rig.surface.faces))
+
+    def __call__(self, q):
+        return self.kin.points(q, self.binding)
+
+
+def _min_sdf(points: np.ndarray, obstacles: list[Sdf]) -> float:
+    if len(points) == 0:
+        return np.inf
+    return float(min(np.min(sdf(points)) for sdf in obstacles))
+
+
+def place_palm(rig: Rig, q: np.ndarray, approach: np.ndarray, obstacles: list[Sdf], standoff: float,
+               max_travel: float = 0.15) -> np.ndarray:
+    """Slide the hand along ``approach`` (unit, world) until the hand, in its current (open)
+    pose, is ``standoff`` metres from the nearest obstacle. The hand starts at q (assumed clear, or is backed off
+    first). Returns the new q."""
+    skin = _Skinner(rig, np.arange(rig.surface.n_vertices))
+    base = root_transform(rig, q)
+    approach = np.asarray(approach, float) / np.linalg.norm(approach)
+
+    def gap(s):
+        t = base.copy()
+        t[:3, 3] += s * approach
+        return _min_sdf(skin(set_root_transform(rig, q, t)), obstacles) - standoff
+
+    step = 0.002
+    lo = 0.0
+    while gap(lo) < 0 and lo > -max_travel:  # start clear of every obstacle
+        lo -= step
+    hi = None
+    s_ = lo
+    while s_ < max_travel:  # march toward the object to the first contact, then bisect
+        s_ += step
+        if gap(s_) < 0:
+            hi = s_
+            break
+        lo = s_
+    if hi is not None:
+        for _ in range(40):
+            mid = 0.5 * (lo + hi)
+            if gap(mid) > 0:
+                lo = mid
+            else:
+                hi = mid
+    t = base.copy()
+    t[:3, 3] += lo * approach
+    return set_root_transform(rig, q, t)
+
+
+def close_fingers(rig: Rig, q: np.ndarray, obstacles: list[Sdf], *, fingers: list[str] | None = None,
+                  press: float = 0.0004, steps: int = 60, max_curl: float = 1.0) -> tuple[np.ndarray, dict]:
+    """Close the named fingers (default: all) from q until their links touch an obstacle,
+    pressing in by ``press`` metres (soft finger pads). Returns (q, {finger: [touching link
+    indices]}). A link that touches stops its joint and the joints before it."""
+    q = np.array(q, dtype=np.float64)
+    upper = rig.upper
+    touching: dict[str, list[int]] = {}
+    for finger in hand_fingers(rig):
+        if fingers is not None and finger.name not in fingers:
+            continue
+        links = [_Skinner(rig, ids) if len(ids) else None for ids in finger.link_vertices]
+        active = [d >= 0 for d in finger.flex_dofs]
+        touched: list[int] = []
+
+        def link_gaps(qq):
+            # Only links at or after the first still-moving joint can change.
+            first = active.index(True)
+            return [(_min_sdf(s(qq), obstacles) + press) if (s is not None and k >= first) else np.inf
+                    for k, s in enumerate(links)]
+
+        start = q.copy()
+        while any(active):
+            span = np.array([(upper[d] - start[d]) * max_curl if d >= 0 else 0.0 for d in finger.flex_dofs])
+
+            def at(s, start=start, span=span):
+                qq = start.copy()
+                for k, d in enumerate(finger.flex_dofs):
+                    if active[k]:
+                        qq[d] = start[d] + min(s * finger.closing_rate[k], 1.0) * span[k]
+                return qq
+
+            gaps = link_gaps(start)
+            if min(gaps) < 0:  # already touching where it starts: that link stops here
+                hit_link, lo = int(np.argmin(gaps)), 0.0
+            else:
+                hit_link, lo = None, 0.0
+                for s_ in np.linspace(0.0, 1.0, steps + 1)[1:]:
+                    if min(link_gaps(at(s_))) < 0:
+                        hi = s_
+                        for _ in range(30):
+                            mid = 0.5 * (lo + hi)
+                            if min(link_gaps(at(mid))) < 0:
+                                hi = mid
+                            else:
+                                lo = mid
+                        hit_link = int(np.argmin(link_gaps(at(hi))))
+                        break
+                    lo = s_
+            start = at(lo)
+            if hit_link is None:
+                break
+            touched.append(hit_link)
+            for k in range(hit_link + 1):
+                active[k] = False
+        q = start
+        touching[finger.name] = sorted(set(touched))
+    return q, touching
