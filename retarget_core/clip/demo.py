@@ -111,7 +111,14 @@ class Timeline:
         self.rig, self.fps, self.time_scale = rig, fps, time_scale
         self.q = [np.array(q0, float)]
         self.objects = [np.array(object_pose, float)]
+        self.held = [False]  # per frame: the object moves with the hand
         self.attached: np.ndarray | None = None  # root-from-object while held
+        self.nominal_seconds = 0.0  # the length at time_scale 1
+
+    @property
+    def nominal_frames(self) -> int:
+        """Frames the timeline has at time_scale 1 (including the first)."""
+        return 1 + int(round(self.nominal_seconds * self.fps))
 
     def _frames(self, seconds: float) -> int:
         return max(2, int(round(seconds * self.time_scale * self.fps)))
@@ -133,6 +140,7 @@ class Timeline:
         ``object_target`` (or stays). ``spin`` = (axis, angle, centre) in the object frame turns a
         held object in the hand about that axis by ``angle`` radians over the segment."""
         n = self._frames(seconds)
+        self.nominal_seconds += seconds
         q0, q1 = self.q[-1], np.array(q_target, float)
         t0, t1 = root_transform(self.rig, q0), root_transform(self.rig, q1)
         slerp = Slerp([0, 1], Rotation.from_matrix(np.stack([t0[:3, :3], t1[:3, :3]])))
@@ -166,6 +174,7 @@ class Timeline:
                 obj = obj0
             self.q.append(q)
             self.objects.append(obj)
+            self.held.append(self.attached is not None)
         return self
 
 
@@ -407,19 +416,18 @@ def label_contacts(rig: Rig, hand_vertices: np.ndarray, object_vertices: np.ndar
     return labels
 
 
-def make_demo_clip(name: str, *, time_scale: float = 1.0, resolution: float = SOURCE_RESOLUTION,
-                   object_resolution: float = 0.002, rig: Rig | None = None) -> Clip:
-    """Generate one demo clip by name (see DEMO_CLIPS). ``time_scale`` < 1 makes it shorter
-    (tests); at 1 every clip has 600 to 1200 frames at 120 fps."""
+def build_demo_timeline(name: str, *, time_scale: float = 1.0, rig: Rig | None = None) -> tuple[DemoObject, Timeline]:
+    """The object and the frame-by-frame timeline of one demo clip (see DEMO_CLIPS)."""
     if name not in DEMO_CLIPS:
         raise KeyError(f"unknown demo clip {name!r}; known: {', '.join(DEMO_CLIPS)}")
-    object_name, motion, builder = DEMO_CLIPS[name]
-    rig = rig or source_rig(resolution)
-    obj, tl = builder(rig, time_scale)
-    if object_resolution != 0.002:
-        obj = make_object(object_name, object_resolution)
-    q = np.array(tl.q)
-    poses = np.array(tl.objects)
+    return DEMO_CLIPS[name][2](rig or source_rig(), time_scale)
+
+
+def clip_from_timeline(name: str, obj: DemoObject, timeline: Timeline, rig: Rig, resolution: float) -> Clip:
+    """Skin the hand along the timeline, label contacts and assemble the clip."""
+    object_name, motion, _ = DEMO_CLIPS[name]
+    q = np.array(timeline.q)
+    poses = np.array(timeline.objects)
     kin = rig.kinematics()
     hand = np.stack([kin.skin(qq) for qq in q]).astype(np.float32)
     labels = label_contacts(rig, hand, obj.vertices, poses)
@@ -427,7 +435,7 @@ def make_demo_clip(name: str, *, time_scale: float = 1.0, resolution: float = SO
     table_pose = np.eye(4)
     table_pose[:3, 3] = TABLE_CENTER
     clip = Clip(
-        fps=FPS,
+        fps=timeline.fps,
         hand_faces=rig.surface.faces,
         hand_vertices=hand,
         object_vertices=obj.vertices,
@@ -448,3 +456,13 @@ def make_demo_clip(name: str, *, time_scale: float = 1.0, resolution: float = SO
     )
     clip.validate(source=f"demo clip {name!r}")
     return clip
+
+
+def make_demo_clip(name: str, *, time_scale: float = 1.0, resolution: float = SOURCE_RESOLUTION,
+                   rig: Rig | None = None) -> Clip:
+    """Generate one demo clip by name (see DEMO_CLIPS). ``time_scale`` < 1 makes it shorter
+    (tests); at 1 every clip has 600 to 1200 frames at 120 fps. ``rig`` must be the source rig
+    at ``resolution`` when given (it saves rebuilding it)."""
+    rig = rig or source_rig(resolution)
+    obj, timeline = build_demo_timeline(name, time_scale=time_scale, rig=rig)
+    return clip_from_timeline(name, obj, timeline, rig, resolution)
