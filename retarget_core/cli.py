@@ -45,10 +45,22 @@ def _cmd_rig_info(args) -> int:
 
 
 def _cmd_demo(args) -> int:
-    """The README's main job. For now: build the demo hand library as USD and summarise it."""
-    args.hand = None
-    print(f"Building the demo hand library in {args.out} ...")
-    return _cmd_rig_demo(args)
+    """The README's main job: the demo hand library (USD), the demonstration clips, their
+    dense contact pairing and a PNG strip of each clip. Later stages extend it."""
+    out = Path(args.out)
+    print(f"== demo hand library -> {out / 'rigs'}")
+    _cmd_rig_demo(argparse.Namespace(out=out / "rigs", hand=None, resolution=args.resolution))
+    print(f"\n== demonstration clips -> {out / 'clips'}")
+    _cmd_clip_demo(argparse.Namespace(out=out / "clips", clip=args.clip, time_scale=args.time_scale,
+                                      resolution=0.004))
+    clips = [c for c in sorted((out / "clips").glob("*.npz")) if not c.name.endswith(".pairs.npz")]
+    print("\n== dense contact pairing")
+    _cmd_clip_pair(argparse.Namespace(paths=clips, epsilon=0.015, per_frame=False, out=out / "clips"))
+    print("\n== renders")
+    for path in clips:
+        _cmd_clip_render(argparse.Namespace(path=path, out=path.with_suffix(".png"), frames=None, count=6,
+                                            view="three_quarter", size="320x320"))
+    return 0
 
 
 def _cmd_bench_kinematics(args) -> int:
@@ -204,6 +216,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="run the main demo job")
     demo.add_argument("--out", default="demo_out", help="output folder")
     demo.add_argument("--resolution", type=float, default=0.002, help="hand mesh cell size in metres")
+    demo.add_argument("--clip", action="append", help="only this demo clip (repeatable)")
+    demo.add_argument("--time-scale", type=float, default=1.0, help="shorten (<1) the demo clips")
     demo.set_defaults(func=_cmd_demo)
 
     rig = sub.add_parser("rig", help="hand rigs")

@@ -55,3 +55,55 @@ def test_every_demo_hand_file_passes_usd_compliance(demo_dir):
 
     for path in sorted(demo_dir.glob("*.usda")):
         assert check_usd_compliance(path) == [], path.name
+
+
+@pytest.fixture(scope="module")
+def clip_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("clips")
+    assert main(["clip", "demo", "--out", str(out), "--clip", "box_pinch", "--time-scale", "0.1"]) == 0
+    return out
+
+
+def test_clip_demo_info_render_and_pair(clip_dir, capsys, tmp_path):
+    path = clip_dir / "box_pinch.npz"
+    assert path.is_file()
+    assert main(["clip", "info", str(path)]) == 0
+    assert "valid" in capsys.readouterr().out
+    png = tmp_path / "strip.png"
+    assert main(["clip", "render", str(path), "--out", str(png), "--count", "3", "--size", "160x120"]) == 0
+    from PIL import Image
+
+    assert Image.open(png).size == (3 * 160, 120)
+    capsys.readouterr()
+    assert main(["clip", "pair", str(path), "--out", str(tmp_path)]) == 0
+    text = capsys.readouterr().out
+    assert re.search(r"box_pinch\.npz\s+\d+\s+\d+", text) and "worst discarded fraction" in text
+    assert (tmp_path / "box_pinch.pairs.npz").is_file()
+
+
+def test_unknown_demo_clip_is_a_clear_error(tmp_path, capsys):
+    assert main(["clip", "demo", "--out", str(tmp_path), "--clip", "juggling"]) == 2
+    assert "unknown demo clip 'juggling'" in capsys.readouterr().err
+
+
+def test_import_grab_reports_a_missing_file(tmp_path, capsys):
+    code = main(["import-grab", str(tmp_path / "seq.npz"), "--mano", str(tmp_path / "MANO_RIGHT.pkl"),
+                 "--out", str(tmp_path / "c.npz")])
+    assert code == 2
+    assert "seq.npz" in capsys.readouterr().err
+
+
+def test_import_grab_command_end_to_end(tmp_path, capsys):
+    from grab_fixtures import make_grab_sequence, make_mano_raw, write_grab_npz, write_mano_official
+
+    from retarget_core.clip import load_clip
+
+    raw = make_mano_raw(0)
+    mano = write_mano_official(tmp_path / "MANO_RIGHT.pkl", raw)
+    seq = make_grab_sequence(tmp_path, raw)
+    sequence = write_grab_npz(tmp_path / "grab" / "s1" / "apple_eat_1.npz", seq)
+    out = tmp_path / "apple.npz"
+    assert main(["import-grab", str(sequence), "--mano", str(mano), "--grab-root", str(tmp_path), "--out", str(out)]) == 0
+    assert "wrote" in capsys.readouterr().out
+    clip = load_clip(out)
+    assert clip.n_frames == 6 and clip.object_name == "apple" and len(clip.marker_names) == 25
