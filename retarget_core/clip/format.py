@@ -35,8 +35,6 @@ source               ()           provenance, e.g. "demo" or "grab:s1/apple_eat_
 
 from __future__ import annotations
 
-import os
-import tempfile
 import zipfile
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -44,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..files import save_npz_atomic
 
 CLIP_FORMAT = "handretarget.clip"
 CLIP_VERSION = 1
@@ -213,17 +212,7 @@ class Clip:
         if self.dof_values is not None:
             arrays["dof_names"] = np.array(self.dof_names, dtype=np.str_)
             arrays["dof_values"] = np.asarray(self.dof_values, dtype=np.float64)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npz.tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as handle:
-                np.savez_compressed(handle, **arrays)
-            os.chmod(tmp, 0o644)
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        save_npz_atomic(path, arrays)
 
 
 _REQUIRED = ("format", "version", "fps", "hand_faces", "hand_vertices", "object_vertices", "object_faces",

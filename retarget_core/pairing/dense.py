@@ -27,8 +27,6 @@ against the ray so that a hand surface exactly at the contact point is still hit
 
 from __future__ import annotations
 
-import os
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +35,7 @@ from typing import Callable, Iterable
 import numpy as np
 
 from ..errors import InputError
+from ..files import save_npz_atomic
 from ..mesh.surface_points import SurfacePoints
 
 PAIRS_FORMAT = "handretarget.contact_pairs"
@@ -289,17 +288,7 @@ class ContactPairs:
         for table in (_PAIR_FIELDS, _FRAME_FIELDS, _DISCARD_FIELDS):
             for name, dtype in table.items():
                 arrays[name] = np.asarray(getattr(self, name), dtype=dtype)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npz.tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as handle:
-                np.savez_compressed(handle, **arrays)
-            os.chmod(tmp, 0o644)
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        save_npz_atomic(path, arrays)
 
 
 _SCALARS = ("epsilon", "ray_offset", "n_object_vertices", "n_object_faces", "n_hand_faces")

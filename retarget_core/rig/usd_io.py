@@ -37,13 +37,12 @@ transposed on the way in and out.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
+from ..files import atomic_path
 from .model import DOF_KINDS, Dof, Joint, Rig, SkinnedMesh
 
 SPEC_VERSION = 1
@@ -190,21 +189,9 @@ def write_rig_usd(rig: Rig, path) -> None:
     if ext not in _USD_EXTENSIONS:
         raise InputError(f"USD file name must end in {', '.join(_USD_EXTENSIONS)}", source=str(path))
     stage = _build_stage(rig)
-    folder = path.parent if str(path.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=ext, dir=folder)
-    os.close(fd)
-    try:
-        if not stage.GetRootLayer().Export(tmp):
+    with atomic_path(path, suffix=ext) as tmp:
+        if not stage.GetRootLayer().Export(str(tmp)):
             raise OSError(f"USD could not write {path}")
-        # mkstemp creates the file 0600; give it the mode a plain open() would have
-        os.chmod(tmp, path.stat().st_mode & 0o7777 if path.exists() else 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
 
 
 # ---- reading -------------------------------------------------------------------------------
