@@ -1,0 +1,1 @@
+"""Contact transfer from a source hand to a target hand (paper: "Contact Alignment")."""

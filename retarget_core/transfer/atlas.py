@@ -1,0 +1,194 @@
+"""The atlas of log-map charts (paper section "Contact Alignment").
+
+Landmarks are the axis points of every source axial curve. Each source contact belongs to its
+geodesically nearest landmark (a geodesic Voronoi partition of the source hand), and is written
+in that landmark's log map as (r, theta), theta measured from the curve's own direction at the
+landmark. On the target the contact is rebuilt at (lambda_s(theta) * r, theta) from the
+corresponding target landmark, in that landmark's own log-map chart, whose zero angle is the
+reconstructed curve's direction. Contacts of a discarded curve's charts are dropped.
+
+Everything that does not depend on the contacts (the curves, one log map per landmark on each
+hand, the charts' layouts) is computed once per hand pair; :func:`get_atlas` caches it, so a
+second clip onto the same hand pays nothing for set-up. Transfer is then a handful of
+vectorised look-ups per contact.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import InputError
+from ..mesh.surface_points import SurfacePoints
+from .annotations import Annotations, annotations_to_dict, resolve_points
+from .axial_curves import Curve, SourceCurve, build_source_curve, reconstruct_curve
+from .geodesics import LogChart, SurfaceGeometry
+
+#: Target charts are laid out within this geodesic radius of their landmark (metres).
+CHART_RADIUS = 0.06
+
+
+@dataclass
+class TransferredContacts:
+    """Transfer of N source surface points. face (N,), barycentric (N, 3) on the target
+    (meaningless where dropped); landmark (N,) index of the chart used; curve (N,) index of its
+    axial curve; dropped (N,) True for contacts of discarded charts; radius (N,) metres and
+    angle (N,) radians in the source chart."""
+
+    face: np.ndarray
+    barycentric: np.ndarray
+    landmark: np.ndarray
+    curve: np.ndarray
+    dropped: np.ndarray
+    radius: np.ndarray
+    angle: np.ndarray
+
+    def target_points(self) -> SurfacePoints:
+        keep = ~self.dropped
+        return SurfacePoints(self.face[keep], self.barycentric[keep])
+
+
+class Atlas:
+    """Charts of one (source surface, target surface, annotations) triple. Build with
+    :func:`get_atlas` (cached) or directly."""
+
+    def __init__(self, source: SurfaceGeometry, target: SurfaceGeometry, annotations: Annotations, *,
+                 chart_radius: float = CHART_RADIUS):
+        annotations.check_meshes(source.faces, len(source.vertices), target.faces, len(target.vertices))
+        self.annotations = annotations
+        self.source, self.target = source, target
+        spacing = annotations.landmark_spacing
+        self.curve_names = [c.name for c in annotations.curves]
+        self.source_curves: list[SourceCurve] = []
+        self.target_curves: list[Curve | None] = []
+        landmark_curve, landmark_index = [], []
+        for ci, ann in enumerate(annotations.curves):
+            what = f"axial curve {ann.name!r}"
+            if ann.source_points:
+                pts = resolve_points(ann.source_points, source.faces, len(source.vertices), what=f"{what} source points")
+                src = build_source_curve(source, ann.name, points=pts, spacing=spacing)
+            else:
+                start = resolve_points([ann.source_start], source.faces, len(source.vertices), what=f"{what} source start")
+                end = resolve_points([ann.source_end], source.faces, len(source.vertices), what=f"{what} source end")
+                src = _with_element(lambda: build_source_curve(source, ann.name, start=start, end=end, spacing=spacing), what)
+            self.source_curves.append(src)
+            if ann.discard:
+                self.target_curves.append(None)
+            else:
+                t = ann.target
+                start = resolve_points([t.start], target.faces, len(target.vertices), what=f"{what} target start")
+                toward = resolve_points([t.direction], target.faces, len(target.vertices), what=f"{what} target direction")
+                self.target_curves.append(_with_element(
+                    lambda: reconstruct_curve(target, src, start, toward, t.lambda_a), what))
+            landmark_curve += [ci] * len(src)
+            landmark_index += list(range(len(src)))
+        if not landmark_curve:
+            raise InputError("the annotations have no axial curve", element="axial_curves")
+        self.landmark_curve = np.array(landmark_curve, dtype=np.int64)
+        self.landmark_index = np.array(landmark_index, dtype=np.int64)
+
+        # Source charts: every landmark's log map over all source vertices, angle 0 along the curve.
+        n_landmarks = len(self.landmark_curve)
+        self.source_coords = np.zeros((n_landmarks, len(source.vertices), 2), dtype=np.float32)
+        for m in range(n_landmarks):
+            c = self.source_curves[self.landmark_curve[m]]
+            k = self.landmark_index[m]
+            self.source_coords[m] = source.log_map(int(c.faces[k]), c.barycentric[k], c.directions[k])
+        radius = np.linalg.norm(self.source_coords, axis=2)  # (M, V)
+        self.vertex_landmark = np.argmin(radius, axis=0)  # geodesic Voronoi cell of every vertex
+
+        # Target charts, laid out for point location.
+        self.target_charts: list[LogChart | None] = []
+        for m in range(n_landmarks):
+            tc = self.target_curves[self.landmark_curve[m]]
+            if tc is None:
+                self.target_charts.append(None)
+                continue
+            k = self.landmark_index[m]
+            coords = target.log_map(int(tc.faces[k]), tc.barycentric[k], tc.directions[k])
+            self.target_charts.append(LogChart(target.faces, coords, chart_radius))
+
+    @property
+    def n_landmarks(self) -> int:
+        return len(self.landmark_curve)
+
+    def source_chart_coordinates(self, points: SurfacePoints):
+        """Nearest landmark (N,) and chart coordinates (N, 2) of source surface points."""
+        points.validate(self.source.faces)
+        corners = self.source.faces[points.faces]  # (N, 3)
+        bary = points.barycentric
+        candidates = self.vertex_landmark[corners]  # (N, 3): the corners' own cells
+        coords = self.source_coords[candidates[:, :, None], corners[:, None, :]].astype(np.float64)  # (N, 3c, 3k, 2)
+        xy = np.einsum("nk,nckd->ncd", bary, coords)  # (N, 3c, 2)
+        r = np.linalg.norm(xy, axis=2)
+        pick = np.argmin(r, axis=1)
+        rows = np.arange(len(points))
+        return candidates[rows, pick], xy[rows, pick]
+
+    def transfer(self, points: SurfacePoints) -> TransferredContacts:
+        """Carry source surface points (N) onto the target."""
+        landmark, xy = self.source_chart_coordinates(points)
+        n = len(points)
+        radius = np.linalg.norm(xy, axis=1)
+        angle = np.arctan2(xy[:, 1], xy[:, 0])
+        curve = self.landmark_curve[landmark]
+        face = np.zeros(n, dtype=np.int64)
+        bary = np.zeros((n, 3))
+        dropped = np.array([self.target_curves[c] is None for c in range(len(self.target_curves))])[curve]
+        order = np.argsort(landmark, kind="stable")
+        bounds = np.searchsorted(landmark[order], np.arange(self.n_landmarks + 1))
+        for m in range(self.n_landmarks):
+            rows = order[bounds[m]:bounds[m + 1]]
+            if len(rows) == 0 or self.target_charts[m] is None:
+                continue
+            lambda_s = self.annotations.curves[self.landmark_curve[m]].target.lambda_s
+            scale = lambda_s(angle[rows])
+            target_xy = xy[rows] * scale[:, None]
+            f, b, _ = self.target_charts[m].locate(target_xy)
+            face[rows], bary[rows] = f, b
+        return TransferredContacts(face, bary, landmark, curve, dropped, radius, angle)
+
+
+def _with_element(fn, element: str):
+    """Run fn, re-raising an InputError with the annotation element in front."""
+    try:
+        return fn()
+    except InputError as err:
+        if element in str(err):
+            raise
+        raise InputError(str(err), element=element) from err
+
+
+# ---- cache per hand pair -----------------------------------------------------------------
+_CACHE: "OrderedDict[str, Atlas]" = OrderedDict()
+_CACHE_SIZE = 8
+
+
+def _digest(*arrays, extra: str = "") -> str:
+    h = hashlib.sha1()
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(str(a.shape).encode())
+        h.update(a.tobytes())
+    h.update(extra.encode())
+    return h.hexdigest()
+
+
+def get_atlas(source_vertices: np.ndarray, source_faces: np.ndarray, target_vertices: np.ndarray,
+              target_faces: np.ndarray, annotations: Annotations) -> Atlas:
+    """The atlas of a hand pair, built once per (surfaces, annotations) and kept in memory."""
+    key = _digest(source_vertices, source_faces, target_vertices, target_faces,
+                  extra=json.dumps(annotations_to_dict(annotations), sort_keys=True))
+    if key in _CACHE:
+        _CACHE.move_to_end(key)
+        return _CACHE[key]
+    atlas = Atlas(SurfaceGeometry(source_vertices, source_faces, name="source surface"),
+                  SurfaceGeometry(target_vertices, target_faces, name="target surface"), annotations)
+    _CACHE[key] = atlas
+    while len(_CACHE) > _CACHE_SIZE:
+        _CACHE.popitem(last=False)
+    return atlas

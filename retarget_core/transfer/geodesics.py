@@ -1,0 +1,217 @@
+"""Geodesic tools on one hand surface, built once and reused: log maps centred at any surface
+point, geodesic tracing (the exponential map) from surface points, shortest paths, and point
+location in a log-map chart.
+
+Conventions: a surface point is (face, barycentric); tangent angles are measured
+counter-clockwise about the outward normal (potpourri3d's tangent frames agree with the outward
+vertex normals of a consistently oriented closed mesh).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import igl
+import numpy as np
+import potpourri3d as pp3d
+from scipy.spatial import cKDTree
+
+from ..errors import InputError
+from ..mesh.surface_points import SurfacePoints, barycentric_of
+from ..mesh.topology import check_closed_manifold
+from ..rig.model import vertex_normals
+
+#: Barycentric coordinates closer than this to 0 or 1 are snapped (a trace that ends on a
+#: vertex or edge comes back a few 1e-6 off, which sends the next trace to the wrong side).
+SNAP = 1e-4
+
+
+@dataclass(frozen=True)
+class TraceResult:
+    """End of a traced geodesic: the surface point, its position (3,), the unit arrival
+    direction (3,) and the length actually walked (m; shorter than asked at a boundary)."""
+
+    face: int
+    barycentric: np.ndarray
+    position: np.ndarray
+    direction: np.ndarray
+    walked: float
+
+
+class SurfaceGeometry:
+    """Geodesic machinery of one mesh. vertices (V, 3) metres, faces (F, 3). The mesh must be a
+    2-manifold (closed or with boundary), consistently oriented."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, *, name: str = "surface"):
+        self.vertices = np.ascontiguousarray(vertices, dtype=np.float64)
+        self.faces = np.ascontiguousarray(faces, dtype=np.int64)
+        self.name = name
+        report = check_closed_manifold(self.faces, len(self.vertices))
+        if not report.manifold or report.nonmanifold_edges:
+            raise InputError(f"geodesics need a manifold surface, but it is {report.describe()}", element=name)
+        self.components = report.components
+        self._vhm = pp3d.MeshVectorHeatSolver(self.vertices, self.faces)
+        self._tracer = pp3d.GeodesicTracer(self.vertices, self.faces)
+        self._paths = None
+        bx, by, bn = self._vhm.get_tangent_frames()
+        self.basis_x, self.basis_y, self.basis_n = (np.asarray(a, dtype=np.float64) for a in (bx, by, bn))
+        self.vertex_normals = vertex_normals(self.vertices, self.faces)
+        tri = self.vertices[self.faces]
+        fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        self.face_normals = fn / np.linalg.norm(fn, axis=1, keepdims=True)
+        self._aabb = igl.AABB()
+        self._aabb.init(self.vertices, self.faces)
+        self._component = None
+
+    # ---- points -----------------------------------------------------------------------------
+    def positions(self, points: SurfacePoints) -> np.ndarray:
+        return points.positions(self.vertices, self.faces)
+
+    def closest_points(self, xyz: np.ndarray) -> SurfacePoints:
+        """Surface points nearest to xyz (N, 3), barycentrics snapped near vertices and edges."""
+        xyz = np.ascontiguousarray(np.asarray(xyz, dtype=np.float64).reshape(-1, 3))
+        _, face, closest = self._aabb.squared_distance(self.vertices, self.faces, xyz)
+        face = np.asarray(face, dtype=np.int64)
+        bary = _snap(barycentric_of(self.vertices[self.faces[face]], closest))
+        return SurfacePoints(face, bary)
+
+    def normal_at(self, face: int, barycentric: np.ndarray) -> np.ndarray:
+        n = barycentric @ self.vertex_normals[self.faces[face]]
+        return n / np.linalg.norm(n)
+
+    def component_of(self, vertex: int) -> int:
+        if self._component is None:
+            from scipy.sparse import coo_matrix
+            from scipy.sparse.csgraph import connected_components
+
+            e = np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]]])
+            n = len(self.vertices)
+            _, self._component = connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
+        return int(self._component[vertex])
+
+    def nearest_vertex(self, face: int, barycentric: np.ndarray) -> int:
+        return int(self.faces[face][int(np.argmax(barycentric))])
+
+    # ---- log maps ---------------------------------------------------------------------------
+    def log_map(self, face: int, barycentric: np.ndarray, zero_direction: np.ndarray | None = None) -> np.ndarray:
+        """(V, 2) log-map coordinates (metres) of every vertex about the surface point, with the
+        angle measured from ``zero_direction`` (3D, any vector with a tangent part) or from the
+        nearest vertex's tangent X axis. The map comes from the nearest vertex
+        (potpourri3d, "AffineLocal") and is shifted by the point's own coordinates in it, which
+        is accurate for points within a triangle of that vertex."""
+        barycentric = np.asarray(barycentric, dtype=np.float64)
+        corners = self.faces[face]
+        origin = int(corners[int(np.argmax(barycentric))])
+        coords = np.asarray(self._vhm.compute_log_map(origin, "AffineLocal"), dtype=np.float64)
+        coords = coords - barycentric @ coords[corners]
+        if zero_direction is not None:
+            angle = self._tangent_angle(origin, zero_direction)
+            c, s = np.cos(-angle), np.sin(-angle)
+            coords = coords @ np.array([[c, s], [-s, c]])
+        return coords
+
+    def _tangent_angle(self, vertex: int, direction: np.ndarray) -> float:
+        return float(np.arctan2(direction @ self.basis_y[vertex], direction @ self.basis_x[vertex]))
+
+    def direction_toward(self, face: int, barycentric: np.ndarray, target: SurfacePoints) -> np.ndarray:
+        """Unit 3D tangent direction at the surface point of the geodesic toward ``target`` (one
+        point), read from the log map at the point."""
+        coords = self.log_map(face, barycentric)
+        corners = self.faces[target.faces[0]]
+        xy = target.barycentric[0] @ coords[corners]
+        if np.linalg.norm(xy) < 1e-9:
+            raise InputError("the direction point coincides with the start point", element=self.name)
+        origin = int(self.faces[face][int(np.argmax(barycentric))])
+        d = xy[0] * self.basis_x[origin] + xy[1] * self.basis_y[origin]
+        return self._tangent_in_face(face, d)
+
+    def _tangent_in_face(self, face: int, direction: np.ndarray) -> np.ndarray:
+        n = self.face_normals[face]
+        d = direction - (direction @ n) * n
+        return d / np.linalg.norm(d)
+
+    # ---- exponential map ---------------------------------------------------------------------
+    def trace(self, face: int, barycentric: np.ndarray, direction: np.ndarray, length: float) -> TraceResult:
+        """Walk ``length`` metres along the geodesic leaving the surface point in ``direction``
+        (3D; its component in the start face's plane is used)."""
+        d = self._tangent_in_face(face, np.asarray(direction, dtype=np.float64))
+        path = np.asarray(self._tracer.trace_geodesic_from_face(int(face), np.asarray(barycentric, dtype=np.float64), d * float(length)))
+        steps = np.diff(path, axis=0)
+        seg = np.linalg.norm(steps, axis=1)
+        walked = float(seg.sum())
+        end = path[-1]
+        long_enough = np.nonzero(seg > 1e-6)[0]
+        arrival = steps[long_enough[-1]] / seg[long_enough[-1]] if len(long_enough) else d
+        point = self.closest_points(end[None])
+        f, b = int(point.faces[0]), point.barycentric[0]
+        arrival = self._tangent_in_face(f, arrival)
+        return TraceResult(f, b, b @ self.vertices[self.faces[f]], arrival, walked)
+
+    # ---- shortest paths ----------------------------------------------------------------------
+    def shortest_path(self, start: SurfacePoints, end: SurfacePoints) -> np.ndarray:
+        """(K, 3) polyline of the shortest geodesic between two surface points (edge-flip
+        geodesics between their nearest vertices, the ends moved onto the exact points)."""
+        if self._paths is None:
+            self._paths = pp3d.EdgeFlipGeodesicSolver(self.vertices, self.faces)
+        a = self.nearest_vertex(int(start.faces[0]), start.barycentric[0])
+        b = self.nearest_vertex(int(end.faces[0]), end.barycentric[0])
+        if self.component_of(a) != self.component_of(b):
+            raise InputError("start and end lie on different (disconnected) parts of the surface", element=self.name)
+        if a == b:
+            path = self.vertices[[a]]
+        else:
+            path = np.asarray(self._paths.find_geodesic_path(a, b), dtype=np.float64)
+        p0, p1 = self.positions(start)[0], self.positions(end)[0]
+        return np.vstack([p0, path[1:-1], p1]) if len(path) > 2 else np.vstack([p0, p1])
+
+
+def _snap(bary: np.ndarray) -> np.ndarray:
+    bary = np.where(bary < SNAP, 0.0, bary)
+    return bary / bary.sum(axis=1, keepdims=True)
+
+
+class LogChart:
+    """A log-map chart of one landmark laid out in the plane, for locating the surface point
+    with given chart coordinates (the inverse of the log map, i.e. the exponential map of the
+    same discrete chart). coords: (V, 2) chart coordinates of the mesh's vertices."""
+
+    def __init__(self, faces: np.ndarray, coords: np.ndarray, radius: float):
+        tri = coords[faces]  # (F, 3, 2)
+        reach = np.linalg.norm(tri, axis=2).max(axis=1)
+        area = 0.5 * ((tri[:, 1, 0] - tri[:, 0, 0]) * (tri[:, 2, 1] - tri[:, 0, 1])
+                      - (tri[:, 2, 0] - tri[:, 0, 0]) * (tri[:, 1, 1] - tri[:, 0, 1]))
+        # Only the injective part near the landmark: positively oriented triangles in reach.
+        keep = np.nonzero((reach <= radius) & (area > 1e-14))[0]
+        if len(keep) == 0:
+            keep = np.argsort(reach)[:1]
+        self.face_ids = keep
+        self.tri = tri[keep]
+        self.reach = reach[keep]
+        self._tree = cKDTree(self.tri.mean(axis=1))
+
+    def locate(self, xy: np.ndarray, k: int = 12):
+        """Faces (N,) and barycentrics (N, 3) of chart points xy (N, 2); points outside the
+        chart's injective part go to the nearest triangle (clamped)."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        k = min(k, len(self.face_ids))
+        _, cand = self._tree.query(xy, k=k)
+        cand = np.asarray(cand).reshape(len(xy), k)
+        t = self.tri[cand]  # (N, k, 3, 2)
+        a, b, c = t[..., 0, :], t[..., 1, :], t[..., 2, :]
+        v0, v1, v2 = b - a, c - a, xy[:, None, :] - a
+        den = v0[..., 0] * v1[..., 1] - v1[..., 0] * v0[..., 1]
+        den = np.where(np.abs(den) < 1e-300, 1e-300, den)
+        beta = (v2[..., 0] * v1[..., 1] - v1[..., 0] * v2[..., 1]) / den
+        gamma = (v0[..., 0] * v2[..., 1] - v2[..., 0] * v0[..., 1]) / den
+        bary = np.stack([1.0 - beta - gamma, beta, gamma], axis=-1)  # (N, k, 3)
+        worst = bary.min(axis=-1)
+        # Where the layout overlaps itself (past the cut locus) several triangles contain the
+        # point: take the one nearest the landmark. Otherwise the least-outside triangle.
+        inside = worst >= -1e-9
+        score = np.where(inside, 1.0 + 1.0 / (1.0 + self.reach[cand]), worst)
+        best = np.argmax(score, axis=1)
+        rows = np.arange(len(xy))
+        chosen = bary[rows, best]
+        chosen = np.clip(chosen, 0.0, None)
+        chosen /= chosen.sum(axis=1, keepdims=True)
+        return self.face_ids[cand[rows, best]], _snap(chosen), worst[rows, best]
