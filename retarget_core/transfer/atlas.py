@@ -91,15 +91,28 @@ class Atlas:
         self.landmark_curve = np.array(landmark_curve, dtype=np.int64)
         self.landmark_index = np.array(landmark_index, dtype=np.int64)
 
-        # Source charts: every landmark's log map over all source vertices, angle 0 along the curve.
+        # Source charts: every landmark's log map over all source vertices, angle 0 along the
+        # curve, and where each is trustworthy.
         n_landmarks = len(self.landmark_curve)
+        n_faces = len(source.faces)
         self.source_coords = np.zeros((n_landmarks, len(source.vertices), 2), dtype=np.float32)
+        self.source_valid_faces = np.zeros((n_landmarks, n_faces), dtype=bool)
+        radius = np.full((n_landmarks, len(source.vertices)), np.inf)
         for m in range(n_landmarks):
             c = self.source_curves[self.landmark_curve[m]]
             k = self.landmark_index[m]
-            self.source_coords[m] = source.log_map(int(c.faces[k]), c.barycentric[k], c.directions[k])
-        radius = np.linalg.norm(self.source_coords, axis=2)  # (M, V)
-        self.vertex_landmark = np.argmin(radius, axis=0)  # geodesic Voronoi cell of every vertex
+            f, b = int(c.faces[k]), c.barycentric[k]
+            coords = source.log_map(f, b, c.directions[k])
+            valid = source.valid_chart_vertices(f, b, coords)
+            self.source_coords[m] = coords
+            self.source_valid_faces[m] = source.valid_chart_faces(coords, valid)
+            radius[m, valid] = np.linalg.norm(coords[valid], axis=1)
+        # geodesic Voronoi cell of every vertex (vertices no chart trusts go to the nearest by
+        # the plain log-map radius)
+        untrusted = ~np.isfinite(radius).any(axis=0)
+        if untrusted.any():
+            radius[:, untrusted] = np.linalg.norm(self.source_coords[:, untrusted], axis=2)
+        self.vertex_landmark = np.argmin(radius, axis=0)
 
         # Target charts, laid out for point location.
         self.target_charts: list[LogChart | None] = []
@@ -109,8 +122,13 @@ class Atlas:
                 self.target_charts.append(None)
                 continue
             k = self.landmark_index[m]
-            coords = target.log_map(int(tc.faces[k]), tc.barycentric[k], tc.directions[k])
-            self.target_charts.append(LogChart(target.faces, coords, chart_radius))
+            f, b = int(tc.faces[k]), tc.barycentric[k]
+            coords = target.log_map(f, b, tc.directions[k])
+            valid_faces = target.valid_chart_faces(coords, target.valid_chart_vertices(f, b, coords))
+            lambda_s = annotations.curves[self.landmark_curve[m]].target.lambda_s
+            scale = float(np.max(lambda_s(np.linspace(-np.pi, np.pi, 73))))
+            reach = chart_radius * max(scale, 1.0)
+            self.target_charts.append(LogChart(target.faces, coords, reach, valid_faces))
 
     @property
     def n_landmarks(self) -> int:
@@ -125,9 +143,21 @@ class Atlas:
         coords = self.source_coords[candidates[:, :, None], corners[:, None, :]].astype(np.float64)  # (N, 3c, 3k, 2)
         xy = np.einsum("nk,nckd->ncd", bary, coords)  # (N, 3c, 2)
         r = np.linalg.norm(xy, axis=2)
-        pick = np.argmin(r, axis=1)
+        # Prefer the nearest landmark whose chart lays this face out faithfully.
+        faithful = self.source_valid_faces[candidates, points.faces[:, None]]
+        pick = np.argmin(np.where(faithful, r, r + 1.0), axis=1)
         rows = np.arange(len(points))
-        return candidates[rows, pick], xy[rows, pick]
+        landmark, chart_xy = candidates[rows, pick], xy[rows, pick]
+        # Rare: no corner's landmark lays this face out faithfully (near a fingertip's cut
+        # locus). Use the nearest landmark of all whose chart does.
+        for i in np.nonzero(~faithful.any(axis=1))[0]:
+            usable = np.nonzero(self.source_valid_faces[:, points.faces[i]])[0]
+            if len(usable) == 0:
+                continue
+            cxy = np.einsum("k,mkd->md", bary[i], self.source_coords[usable][:, corners[i]].astype(np.float64))
+            best = int(np.argmin(np.linalg.norm(cxy, axis=1)))
+            landmark[i], chart_xy[i] = usable[best], cxy[best]
+        return landmark, chart_xy
 
     def transfer(self, points: SurfacePoints) -> TransferredContacts:
         """Carry source surface points (N) onto the target."""

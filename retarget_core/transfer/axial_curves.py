@@ -55,61 +55,82 @@ def _rotate_about(v: np.ndarray, normal: np.ndarray, angle: float) -> np.ndarray
     return v * np.cos(angle) + np.cross(normal, v) * np.sin(angle) + normal * (normal @ v) * (1 - np.cos(angle))
 
 
-def resample_polyline(path: np.ndarray, spacing: float) -> np.ndarray:
-    """Points every ``spacing`` metres of arclength along path (K, 3), both ends included."""
-    seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
-    arclength = np.concatenate([[0.0], np.cumsum(seg)])
-    total = arclength[-1]
-    if total <= 0:
-        return path[:1].copy()
-    n = max(1, int(np.round(total / spacing)))
-    s = np.linspace(0.0, total, n + 1)
-    return np.column_stack([np.interp(s, arclength, path[:, k]) for k in range(3)])
+def initial_direction(geometry: SurfaceGeometry, face: int, bary: np.ndarray, toward: SurfacePoints):
+    """Unit direction (3,) in which the shortest geodesic from (face, bary) to ``toward`` leaves,
+    and that geodesic's length (m). The path comes from edge-flip geodesics; the direction is the
+    log-map direction, at the start, of the point 1 cm along it (accurate at that range; the
+    path's own first segment is bent by snapping the start to a vertex)."""
+    start = SurfacePoints(np.array([face]), np.asarray(bary, float)[None])
+    path = geometry.shortest_path(start, toward)
+    seg_lengths = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    total = float(seg_lengths.sum())
+    if total < 1e-9:
+        raise InputError("the curve has no length (its points coincide)")
+    arclength = np.concatenate([[0.0], np.cumsum(seg_lengths)])
+    aim_at = min(0.01, 0.5 * total)
+    aim = np.array([np.interp(aim_at, arclength, path[:, k]) for k in range(3)])
+    return geometry.direction_toward(face, bary, geometry.closest_points(aim[None])), total
+
+
+def _geodesic_leg(geometry: SurfaceGeometry, face: int, bary: np.ndarray, toward: SurfacePoints, spacing: float):
+    """Landmarks every ~spacing metres along the geodesic from (face, bary) to ``toward``
+    (see :func:`initial_direction`), traced segment by segment. Returns (faces, barycentrics,
+    positions, leaving directions, segment lengths)."""
+    d, total = initial_direction(geometry, face, bary, toward)
+    n_seg = max(1, int(round(total / spacing)))
+    seg = total / n_seg
+    faces, barys, positions, directions = [face], [np.asarray(bary, float)], [bary @ geometry.vertices[geometry.faces[face]]], [d]
+    f, b = face, np.asarray(bary, float)
+    for i in range(n_seg):
+        end = geometry.trace(f, b, d, seg)
+        if end.walked < seg * (1 - 1e-6) - 1e-9:
+            raise InputError("the source curve runs off the mesh boundary")
+        f, b, d = end.face, end.barycentric, end.direction
+        faces.append(f)
+        barys.append(b)
+        positions.append(end.position)
+        directions.append(d)
+    return faces, barys, positions, directions, [seg] * n_seg
 
 
 def build_source_curve(geometry: SurfaceGeometry, name: str, *, start: SurfacePoints | None = None,
                        end: SurfacePoints | None = None, points: SurfacePoints | None = None,
                        spacing: float = 0.002) -> SourceCurve:
-    """Landmarks and intrinsic description of a source curve: the shortest geodesic from
-    ``start`` to ``end`` (or the polyline through ``points``), resampled every ``spacing`` m."""
-    if points is not None:
-        anchors = geometry.positions(points)
-        pieces = [geometry.shortest_path(SurfacePoints(points.faces[i:i + 1], points.barycentric[i:i + 1]),
-                                         SurfacePoints(points.faces[i + 1:i + 2], points.barycentric[i + 1:i + 2]))
-                  for i in range(len(anchors) - 1)]
-        path = np.vstack([pieces[0]] + [p[1:] for p in pieces[1:]])
-    else:
-        path = geometry.shortest_path(start, end)
-    samples = resample_polyline(path, spacing)
-    if len(samples) < 2:
-        raise InputError("the curve has no length (start and end coincide)", element=f"axial curve {name!r}")
-    located = geometry.closest_points(samples)
-    first = start if start is not None else SurfacePoints(points.faces[:1], points.barycentric[:1])
-    faces, bary = located.faces.copy(), located.barycentric.copy()
-    faces[0], bary[0] = first.faces[0], first.barycentric[0]
-    positions = SurfacePoints(faces, bary).positions(geometry.vertices, geometry.faces)
-    n = len(faces)
-    normals = np.array([geometry.normal_at(int(faces[i]), bary[i]) for i in range(n)])
-    chords = np.diff(positions, axis=0)
-    lengths = np.linalg.norm(chords, axis=1)
-    leaving = np.zeros((n, 3))
-    arriving = np.zeros((n, 3))
-    for i in range(n):
-        if i < n - 1:
-            leaving[i] = _tangent(chords[i], normals[i])
-        if i > 0:
-            arriving[i] = _tangent(chords[i - 1], normals[i])
-    turning = np.zeros(n)
-    for i in range(1, n - 1):
-        turning[i] = _signed_angle(arriving[i], leaving[i], normals[i])
-    directions = leaving.copy()
-    directions[-1] = arriving[-1]
-    return SourceCurve(name, faces, bary, positions, directions, lengths=lengths, turning=turning)
+    """Landmarks and intrinsic description of a source curve: the geodesic from ``start``
+    toward ``end`` (or through each of ``points`` in turn), landmarks every ~``spacing`` m.
 
-
-def _tangent(v: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    t = v - (v @ normal) * normal
-    return t / np.linalg.norm(t)
+    Each leg is the geodesic leaving its first point in the log-map direction of the next point,
+    as long as the log-map distance to it, traced in steps; turning angles are 0 inside a leg
+    and, at an interior anchor point, the turn from the arriving leg to the leaving one."""
+    anchors = points if points is not None else SurfacePoints(np.concatenate([start.faces, end.faces]),
+                                                              np.vstack([start.barycentric, end.barycentric]))
+    if len(anchors) < 2:
+        raise InputError("a curve needs at least two points", element=f"axial curve {name!r}")
+    faces, barys, positions, leaving, lengths, turning = [], [], [], [], [], []
+    arriving = None
+    f, b = int(anchors.faces[0]), anchors.barycentric[0]
+    for k in range(len(anchors) - 1):
+        toward = SurfacePoints(anchors.faces[k + 1:k + 2], anchors.barycentric[k + 1:k + 2])
+        try:
+            lf, lb, lp, ld, ll = _geodesic_leg(geometry, f, b, toward, spacing)
+        except InputError as err:
+            raise InputError(str(err), element=f"axial curve {name!r} (source, leg {k + 1})") from err
+        if arriving is not None:  # the anchor point: turn from the arriving leg to the leaving one
+            normal = geometry.face_normals[lf[0]]
+            turning[-1] = _signed_angle(arriving, ld[0], normal)
+            leaving[-1] = ld[0]
+            lf, lb, lp, ld = lf[1:], lb[1:], lp[1:], ld[1:]
+        faces += lf
+        barys += lb
+        positions += lp
+        leaving += ld
+        lengths += ll
+        turning += [0.0] * len(lf)
+        arriving = ld[-1]
+        f, b = faces[-1], barys[-1]
+    turning[-1] = 0.0
+    return SourceCurve(name, np.array(faces, dtype=np.int64), np.array(barys), np.array(positions),
+                       np.array(leaving), lengths=np.array(lengths), turning=np.array(turning))
 
 
 def reconstruct_curve(geometry: SurfaceGeometry, source: SourceCurve, start: SurfacePoints,
@@ -125,7 +146,7 @@ def reconstruct_curve(geometry: SurfaceGeometry, source: SourceCurve, start: Sur
     positions = np.zeros((n, 3))
     directions = np.zeros((n, 3))
     f, b = int(start.faces[0]), start.barycentric[0]
-    d = geometry.direction_toward(f, b, direction_point)
+    d, _ = initial_direction(geometry, f, b, direction_point)
     faces[0], bary[0] = f, b
     positions[0] = b @ geometry.vertices[geometry.faces[f]]
     for i in range(n - 1):
@@ -139,10 +160,9 @@ def reconstruct_curve(geometry: SurfaceGeometry, source: SourceCurve, start: Sur
             )
         f, b = end.face, end.barycentric
         faces[i + 1], bary[i + 1], positions[i + 1] = f, b, end.position
-        normal = geometry.normal_at(f, b)
-        d = _rotate_about(end.direction, normal, float(source.turning[i + 1]))
-        d = d - (d @ normal) * normal
-        d /= np.linalg.norm(d)
+        d = end.direction  # already in the plane of face f
+        if source.turning[i + 1] != 0.0:
+            d = _rotate_about(d, geometry.face_normals[f], float(source.turning[i + 1]))
         if i + 1 == n - 1:
             directions[i + 1] = end.direction
     if n == 1:

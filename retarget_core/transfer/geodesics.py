@@ -62,6 +62,8 @@ class SurfaceGeometry:
         self._aabb = igl.AABB()
         self._aabb.init(self.vertices, self.faces)
         self._component = None
+        self._heat = None
+        self.edge_length = float(np.median(np.linalg.norm(tri[:, 0] - tri[:, 1], axis=1)))
 
     # ---- points -----------------------------------------------------------------------------
     def positions(self, points: SurfacePoints) -> np.ndarray:
@@ -109,6 +111,33 @@ class SurfaceGeometry:
             c, s = np.cos(-angle), np.sin(-angle)
             coords = coords @ np.array([[c, s], [-s, c]])
         return coords
+
+    def geodesic_distance(self, face: int, barycentric: np.ndarray) -> np.ndarray:
+        """(V,) heat-method geodesic distance (m) of every vertex from the point's nearest vertex."""
+        if self._heat is None:
+            self._heat = pp3d.MeshHeatMethodDistanceSolver(self.vertices, self.faces)
+        return np.asarray(self._heat.compute_distance(self.nearest_vertex(face, barycentric)), dtype=np.float64)
+
+    def valid_chart_vertices(self, face: int, barycentric: np.ndarray, coords: np.ndarray) -> np.ndarray:
+        """(V,) where the log map about the point is trustworthy: its radius agrees with the
+        heat-method distance (past the cut locus the log map folds and they part)."""
+        distance = self.geodesic_distance(face, barycentric)
+        radius = np.linalg.norm(coords, axis=1)
+        return np.abs(radius - distance) <= 0.15 * distance + self.edge_length
+
+    def valid_chart_faces(self, coords: np.ndarray, valid_vertices: np.ndarray) -> np.ndarray:
+        """(F,) faces laid out faithfully by a chart: corners trustworthy, positively oriented,
+        edges neither squashed nor stretched by more than a factor 4 (a log map stretches
+        angularly near the cut locus of a fingertip, but stays usable)."""
+        tri2 = coords[self.faces]
+        area = 0.5 * ((tri2[:, 1, 0] - tri2[:, 0, 0]) * (tri2[:, 2, 1] - tri2[:, 0, 1])
+                      - (tri2[:, 2, 0] - tri2[:, 0, 0]) * (tri2[:, 1, 1] - tri2[:, 0, 1]))
+        tri3 = self.vertices[self.faces]
+        ratio = np.stack([np.linalg.norm(tri2[:, k] - tri2[:, (k + 1) % 3], axis=1)
+                          / np.maximum(np.linalg.norm(tri3[:, k] - tri3[:, (k + 1) % 3], axis=1), 1e-12)
+                          for k in range(3)], axis=1)
+        return (valid_vertices[self.faces].all(axis=1) & (area > 1e-14)
+                & (ratio.min(axis=1) > 0.25) & (ratio.max(axis=1) < 4.0))
 
     def _tangent_angle(self, vertex: int, direction: np.ndarray) -> float:
         return float(np.arctan2(direction @ self.basis_y[vertex], direction @ self.basis_x[vertex]))
@@ -175,13 +204,11 @@ class LogChart:
     with given chart coordinates (the inverse of the log map, i.e. the exponential map of the
     same discrete chart). coords: (V, 2) chart coordinates of the mesh's vertices."""
 
-    def __init__(self, faces: np.ndarray, coords: np.ndarray, radius: float):
+    def __init__(self, faces: np.ndarray, coords: np.ndarray, radius: float, valid_faces: np.ndarray):
         tri = coords[faces]  # (F, 3, 2)
         reach = np.linalg.norm(tri, axis=2).max(axis=1)
-        area = 0.5 * ((tri[:, 1, 0] - tri[:, 0, 0]) * (tri[:, 2, 1] - tri[:, 0, 1])
-                      - (tri[:, 2, 0] - tri[:, 0, 0]) * (tri[:, 1, 1] - tri[:, 0, 1]))
-        # Only the injective part near the landmark: positively oriented triangles in reach.
-        keep = np.nonzero((reach <= radius) & (area > 1e-14))[0]
+        # Only the faithful part near the landmark (see SurfaceGeometry.valid_chart_faces).
+        keep = np.nonzero((reach <= radius) & valid_faces)[0]
         if len(keep) == 0:
             keep = np.argsort(reach)[:1]
         self.face_ids = keep
@@ -189,7 +216,7 @@ class LogChart:
         self.reach = reach[keep]
         self._tree = cKDTree(self.tri.mean(axis=1))
 
-    def locate(self, xy: np.ndarray, k: int = 12):
+    def locate(self, xy: np.ndarray, k: int = 24):
         """Faces (N,) and barycentrics (N, 3) of chart points xy (N, 2); points outside the
         chart's injective part go to the nearest triangle (clamped)."""
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)

@@ -2,7 +2,7 @@
 an artist can edit (the paper's annotations were made by hand).
 
 For every finger of the source: an axial curve along the finger's palmar side from its first
-joint to its pad; on the target, the finger of the same name (a missing finger's curve is
+joint over the pad to the apex of the fingertip; on the target, the finger of the same name (a missing finger's curve is
 discarded), started at the same place, pointed along the finger, with lambda_a = the target
 finger's length over the source's and lambda_s = the ratio of their girths. Two palm curves
 (wrist to the middle knuckle; index knuckle across to the outermost knuckle) cover the palm.
@@ -82,19 +82,19 @@ def propose_annotations(source: Rig, target: Rig, *, area_radius: float = 0.004,
             continue
         s = src[name]
         s_start = s["joints"][0] + s["palmar"] * off
-        s_end = s["tip"] - (s["tip"] - s["joints"][-1]) * 0.3 + s["palmar"] * off
+        s_end = s["tip"]  # the apex of the fingertip: charts then cover the pad, the tip and the nail
         if name in tgt:
             t = tgt[name]
-            target = CurveTarget(
+            curve_target = CurveTarget(
                 start=_point(target, t["joints"][0] + t["palmar"] * off),
-                direction=_point(target, t["joints"][1] + t["palmar"] * off),
+                direction=_point(target, t["tip"]),
                 lambda_a=round(t["length"] / s["length"], 3),
                 lambda_s=LambdaS.constant(round(t["girth"] / s["girth"], 3)),
             )
         else:
-            target = None
+            curve_target = None
         curves.append(AxialCurveAnnotation(name=name, source_start=_point(source, s_start),
-                                           source_end=_point(source, s_end), source_points=None, target=target))
+                                           source_end=_point(source, s_end), source_points=None, target=curve_target))
 
     # Palm: wrist to the middle knuckle, and across the knuckles.
     def palm_points(rig, fingers):
