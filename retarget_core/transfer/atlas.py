@@ -97,15 +97,18 @@ class Atlas:
         n_faces = len(source.faces)
         self.source_coords = np.zeros((n_landmarks, len(source.vertices), 2), dtype=np.float32)
         self.source_valid_faces = np.zeros((n_landmarks, n_faces), dtype=bool)
+        self.source_charts: list[LogChart] = []
         radius = np.full((n_landmarks, len(source.vertices)), np.inf)
         for m in range(n_landmarks):
             c = self.source_curves[self.landmark_curve[m]]
             k = self.landmark_index[m]
             f, b = int(c.faces[k]), c.barycentric[k]
             coords = source.log_map(f, b, c.directions[k])
-            valid = source.valid_chart_vertices(f, b, coords)
+            distance = source.geodesic_distance(f, b)
+            valid = source.valid_chart_vertices(f, b, coords, distance)
             self.source_coords[m] = coords
-            self.source_valid_faces[m] = source.valid_chart_faces(coords, valid)
+            self.source_valid_faces[m] = source.valid_chart_faces(coords, valid, distance)
+            self.source_charts.append(LogChart(source.faces, coords, chart_radius, self.source_valid_faces[m], distance))
             radius[m, valid] = np.linalg.norm(coords[valid], axis=1)
         # geodesic Voronoi cell of every vertex (vertices no chart trusts go to the nearest by
         # the plain log-map radius)
@@ -124,40 +127,68 @@ class Atlas:
             k = self.landmark_index[m]
             f, b = int(tc.faces[k]), tc.barycentric[k]
             coords = target.log_map(f, b, tc.directions[k])
-            valid_faces = target.valid_chart_faces(coords, target.valid_chart_vertices(f, b, coords))
+            distance = target.geodesic_distance(f, b)
+            valid_faces = target.valid_chart_faces(coords, target.valid_chart_vertices(f, b, coords, distance), distance)
             lambda_s = annotations.curves[self.landmark_curve[m]].target.lambda_s
             scale = float(np.max(lambda_s(np.linspace(-np.pi, np.pi, 73))))
             reach = chart_radius * max(scale, 1.0)
-            self.target_charts.append(LogChart(target.faces, coords, reach, valid_faces))
+            self.target_charts.append(LogChart(target.faces, coords, reach, valid_faces, distance))
 
     @property
     def n_landmarks(self) -> int:
         return len(self.landmark_curve)
 
     def source_chart_coordinates(self, points: SurfacePoints):
-        """Nearest landmark (N,) and chart coordinates (N, 2) of source surface points."""
+        """Nearest landmark (N,) and chart coordinates (N, 2) of source surface points.
+
+        A point belongs to the nearest of its face corners' landmarks whose chart lays it out
+        one-to-one: locating its coordinates in that chart must give the point back (near a
+        fingertip's cut locus a chart can fold over itself, and a folded chart could not tell
+        the point from another)."""
         points.validate(self.source.faces)
+        n = len(points)
         corners = self.source.faces[points.faces]  # (N, 3)
         bary = points.barycentric
+        positions = points.positions(self.source.vertices, self.source.faces)
         candidates = self.vertex_landmark[corners]  # (N, 3): the corners' own cells
         coords = self.source_coords[candidates[:, :, None], corners[:, None, :]].astype(np.float64)  # (N, 3c, 3k, 2)
         xy = np.einsum("nk,nckd->ncd", bary, coords)  # (N, 3c, 2)
         r = np.linalg.norm(xy, axis=2)
-        # Prefer the nearest landmark whose chart lays this face out faithfully.
         faithful = self.source_valid_faces[candidates, points.faces[:, None]]
-        pick = np.argmin(np.where(faithful, r, r + 1.0), axis=1)
-        rows = np.arange(len(points))
-        landmark, chart_xy = candidates[rows, pick], xy[rows, pick]
-        # Rare: no corner's landmark lays this face out faithfully (near a fingertip's cut
-        # locus). Use the nearest landmark of all whose chart does.
-        for i in np.nonzero(~faithful.any(axis=1))[0]:
+        order = np.argsort(np.where(faithful, r, r + 1.0), axis=1)
+        rows = np.arange(n)
+        landmark, chart_xy = candidates[rows, order[:, 0]].copy(), xy[rows, order[:, 0]].copy()
+        accepted = np.zeros(n, dtype=bool)
+        for attempt in range(3):
+            todo = np.nonzero(~accepted)[0]
+            if len(todo) == 0:
+                break
+            cand = candidates[todo, order[todo, attempt]]
+            cxy = xy[todo, order[todo, attempt]]
+            ok = self._round_trips(cand, cxy, positions[todo])
+            hit = todo[ok]
+            landmark[hit], chart_xy[hit], accepted[hit] = cand[ok], cxy[ok], True
+        # The rest: the nearest landmark of all whose chart gives the point back, if any.
+        for i in np.nonzero(~accepted)[0]:
             usable = np.nonzero(self.source_valid_faces[:, points.faces[i]])[0]
             if len(usable) == 0:
                 continue
             cxy = np.einsum("k,mkd->md", bary[i], self.source_coords[usable][:, corners[i]].astype(np.float64))
-            best = int(np.argmin(np.linalg.norm(cxy, axis=1)))
-            landmark[i], chart_xy[i] = usable[best], cxy[best]
+            for j in np.argsort(np.linalg.norm(cxy, axis=1)):
+                if self._round_trips(usable[j:j + 1], cxy[j:j + 1], positions[i:i + 1])[0]:
+                    landmark[i], chart_xy[i] = usable[j], cxy[j]
+                    break
         return landmark, chart_xy
+
+    def _round_trips(self, landmark: np.ndarray, xy: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        """(N,) whether locating xy in the source chart of each landmark gives ``positions``."""
+        ok = np.zeros(len(landmark), dtype=bool)
+        for m in np.unique(landmark):
+            rows = np.nonzero(landmark == m)[0]
+            f, b, _ = self.source_charts[m].locate(xy[rows])
+            back = np.einsum("nk,nkd->nd", b, self.source.vertices[self.source.faces[f]])
+            ok[rows] = np.linalg.norm(back - positions[rows], axis=1) < 1e-6
+        return ok
 
     def transfer(self, points: SurfacePoints) -> TransferredContacts:
         """Carry source surface points (N) onto the target."""

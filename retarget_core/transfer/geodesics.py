@@ -118,17 +118,50 @@ class SurfaceGeometry:
             self._heat = pp3d.MeshHeatMethodDistanceSolver(self.vertices, self.faces)
         return np.asarray(self._heat.compute_distance(self.nearest_vertex(face, barycentric)), dtype=np.float64)
 
-    def valid_chart_vertices(self, face: int, barycentric: np.ndarray, coords: np.ndarray) -> np.ndarray:
+    def valid_chart_vertices(self, face: int, barycentric: np.ndarray, coords: np.ndarray,
+                             distance: np.ndarray | None = None) -> np.ndarray:
         """(V,) where the log map about the point is trustworthy: its radius agrees with the
         heat-method distance (past the cut locus the log map folds and they part)."""
-        distance = self.geodesic_distance(face, barycentric)
+        if distance is None:
+            distance = self.geodesic_distance(face, barycentric)
         radius = np.linalg.norm(coords, axis=1)
         return np.abs(radius - distance) <= 0.15 * distance + self.edge_length
 
-    def valid_chart_faces(self, coords: np.ndarray, valid_vertices: np.ndarray) -> np.ndarray:
+    def valid_chart_faces(self, coords: np.ndarray, valid_vertices: np.ndarray, distance: np.ndarray) -> np.ndarray:
         """(F,) faces laid out faithfully by a chart: corners trustworthy, positively oriented,
         edges neither squashed nor stretched by more than a factor 4 (a log map stretches
-        angularly near the cut locus of a fingertip, but stays usable)."""
+        angularly near the cut locus of a fingertip, but stays usable), and not covered in the
+        layout by a face geodesically nearer the landmark (where the map folds over itself only
+        the near sheet is kept, so the chart is one-to-one)."""
+        keep = self._faithful_faces(coords, valid_vertices)
+        ids = np.nonzero(keep)[0]
+        if len(ids) < 2:
+            return keep
+        tri2 = coords[self.faces[ids]]
+        centroid = tri2.mean(axis=1)
+        near = distance[self.faces[ids]].mean(axis=1)
+        k = min(16, len(ids))
+        tree = cKDTree(centroid)
+        shadowed = np.zeros(len(ids), dtype=bool)
+        # A triangle whose centroid lies strictly inside a geodesically nearer triangle overlaps it
+        # in the layout (partial overlaps that miss the centroid are caught at transfer time).
+        for w in (None,):
+            sample = centroid if w is None else 0.7 * tri2[:, w] + 0.3 * centroid
+            _, cand = tree.query(sample, k=k)
+            t = tri2[cand]  # (n, k, 3, 2)
+            a, b, c = t[..., 0, :], t[..., 1, :], t[..., 2, :]
+            v0, v1, v2 = b - a, c - a, sample[:, None, :] - a
+            den = v0[..., 0] * v1[..., 1] - v1[..., 0] * v0[..., 1]
+            den = np.where(np.abs(den) < 1e-300, 1e-300, den)
+            beta = (v2[..., 0] * v1[..., 1] - v1[..., 0] * v2[..., 1]) / den
+            gamma = (v0[..., 0] * v2[..., 1] - v2[..., 0] * v0[..., 1]) / den
+            inside = (beta > 1e-9) & (gamma > 1e-9) & (1 - beta - gamma > 1e-9)
+            shadowed |= (inside & (near[cand] < near[:, None] - 1e-12)
+                         & (cand != np.arange(len(ids))[:, None])).any(axis=1)
+        keep[ids[shadowed]] = False
+        return keep
+
+    def _faithful_faces(self, coords: np.ndarray, valid_vertices: np.ndarray) -> np.ndarray:
         tri2 = coords[self.faces]
         area = 0.5 * ((tri2[:, 1, 0] - tri2[:, 0, 0]) * (tri2[:, 2, 1] - tri2[:, 0, 1])
                       - (tri2[:, 2, 0] - tri2[:, 0, 0]) * (tri2[:, 1, 1] - tri2[:, 0, 1]))
@@ -204,7 +237,11 @@ class LogChart:
     with given chart coordinates (the inverse of the log map, i.e. the exponential map of the
     same discrete chart). coords: (V, 2) chart coordinates of the mesh's vertices."""
 
-    def __init__(self, faces: np.ndarray, coords: np.ndarray, radius: float, valid_faces: np.ndarray):
+    def __init__(self, faces: np.ndarray, coords: np.ndarray, radius: float, valid_faces: np.ndarray,
+                 distance: np.ndarray):
+        """faces (F, 3); coords (V, 2); radius (m): the chart's extent; valid_faces (F,) bool;
+        distance (V,) geodesic distance of the vertices from the landmark (ranks the sheets
+        where the layout still overlaps itself)."""
         tri = coords[faces]  # (F, 3, 2)
         reach = np.linalg.norm(tri, axis=2).max(axis=1)
         # Only the faithful part near the landmark (see SurfaceGeometry.valid_chart_faces).
@@ -213,7 +250,7 @@ class LogChart:
             keep = np.argsort(reach)[:1]
         self.face_ids = keep
         self.tri = tri[keep]
-        self.reach = reach[keep]
+        self.reach = distance[faces[keep]].mean(axis=1)
         self._tree = cKDTree(self.tri.mean(axis=1))
 
     def locate(self, xy: np.ndarray, k: int = 24):
@@ -233,7 +270,7 @@ class LogChart:
         bary = np.stack([1.0 - beta - gamma, beta, gamma], axis=-1)  # (N, k, 3)
         worst = bary.min(axis=-1)
         # Where the layout overlaps itself (past the cut locus) several triangles contain the
-        # point: take the one nearest the landmark. Otherwise the least-outside triangle.
+        # point: take the one geodesically nearest the landmark. Else the least-outside one.
         inside = worst >= -1e-9
         score = np.where(inside, 1.0 + 1.0 / (1.0 + self.reach[cand]), worst)
         best = np.argmax(score, axis=1)
