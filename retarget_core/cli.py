@@ -201,6 +201,119 @@ def _cmd_bench_pairing(args) -> int:
     return 0
 
 
+def _cmd_annotate_propose(args) -> int:
+    from .rig.io import resolve_rig
+    from .transfer.annotations import save_annotations
+    from .transfer.propose import propose_annotations
+
+    annotations = propose_annotations(resolve_rig(args.source), resolve_rig(args.target))
+    save_annotations(annotations, args.out)
+    kept = [c.name for c in annotations.curves if not c.discard]
+    dropped = [c.name for c in annotations.curves if c.discard]
+    print(f"wrote {args.out}: {len(annotations.markers)} markers, curves {', '.join(kept)}"
+          + (f"; discarded {', '.join(dropped)}" if dropped else ""))
+    for c in annotations.curves:
+        if not c.discard:
+            print(f"  {c.name:<9} lambda_a {c.target.lambda_a:<6} lambda_s {c.target.lambda_s.uniform}")
+    return 0
+
+
+def _cmd_annotate_demo(args) -> int:
+    from .rig.demo_hands import DEMO_HANDS
+    from .transfer.annotations import save_annotations
+    from .transfer.propose import propose_annotations
+    from .rig.demo_hands import demo_hand
+
+    out = Path(args.out)
+    source = demo_hand("source_human", resolution=args.source_resolution)
+    for name in DEMO_HANDS:
+        target = demo_hand(name, resolution=args.resolution)
+        path = out / f"{name}.json"
+        save_annotations(propose_annotations(source, target), path)
+        print(f"wrote {path}")
+    return 0
+
+
+def _transfer_setup(args):
+    from .clip import load_clip
+    from .rig.io import resolve_rig
+    from .transfer.annotations import load_annotations
+
+    target = resolve_rig(args.rig)
+    annotations = load_annotations(args.annotations)
+    return load_clip, resolve_rig, target, annotations
+
+
+def _print_transfer_row(name, report):
+    dropped_curves = ", ".join(f"{k} {v['dropped']}" for k, v in report["per_curve"].items() if v["dropped"])
+    spread = report["spread_ratio_median"]
+    print(f"{name:<22} {report['contacts']:>9} {100 * report['transferred_share']:>10.1f}% "
+          f"{100 * report['dropped_share']:>8.1f}% {spread if spread is None else round(spread, 2)!s:>8}  "
+          f"{dropped_curves or '-'}")
+
+
+def _cmd_transfer(args) -> int:
+    from .pairing import pair_contacts
+    from .transfer.clip_transfer import render_transfer, transfer_clip, transfer_report
+
+    load_clip, resolve_rig, target, annotations = _transfer_setup(args)
+    print(f"{'clip':<22} {'contacts':>9} {'transferred':>11} {'dropped':>9} {'spread':>8}  dropped by curve")
+    for clip_path in args.clip:
+        clip = load_clip(clip_path)
+        source = resolve_rig(args.source_rig or clip.source_rig or "")
+        frames = [int(f) for f in args.frames.split(",")] if args.frames else None
+        pairs = pair_contacts(clip, frames=frames)
+        result = transfer_clip(pairs, source, target, annotations)
+        report = transfer_report(result, source, target)
+        _print_transfer_row(Path(clip_path).stem, report)
+        if args.out:
+            out = Path(args.out)
+            out.mkdir(parents=True, exist_ok=True)
+            (out / f"{Path(clip_path).stem}.transfer.json").write_text(json.dumps(report, indent=2))
+            shown = frames or _contact_rich_frames(pairs, 4)
+            png = render_transfer(result, source, target, shown, out / f"{Path(clip_path).stem}.transfer.png")
+            print(f"  wrote {png}")
+    return 0
+
+
+def _contact_rich_frames(pairs, count: int) -> list[int]:
+    counts = np.diff(pairs.frame_offsets)
+    frames = np.nonzero(counts > 0)[0]
+    if len(frames) == 0:
+        return [0]
+    picks = np.linspace(0, len(frames) - 1, min(count, len(frames))).round().astype(int)
+    return [int(frames[i]) for i in picks]
+
+
+def _cmd_transfer_demo(args) -> int:
+    """Every demo clip onto every demo target with the proposed annotations: shares and spread."""
+    from .clip import load_clip
+    from .pairing import pair_contacts
+    from .rig.demo_hands import DEMO_HANDS, demo_hand
+    from .rig.io import resolve_rig
+    from .transfer.clip_transfer import transfer_clip, transfer_report
+    from .transfer.propose import propose_annotations
+
+    clips = [c for c in sorted(Path(args.clips).glob("*.npz")) if not c.name.endswith(".pairs.npz")]
+    if not clips:
+        raise _usage(f"no clips (*.npz) in {args.clips}")
+    loaded = [(c.stem, load_clip(c)) for c in clips]
+    step = max(1, args.every)
+    pairs = {name: pair_contacts(clip, frames=range(0, clip.n_frames, step)) for name, clip in loaded}
+    sources = {}
+    targets = args.target or list(DEMO_HANDS)
+    for target_name in targets:
+        target = demo_hand(target_name, resolution=args.resolution)
+        print(f"\n== {target_name} ({target.surface.n_vertices} vertices)")
+        print(f"{'clip':<22} {'contacts':>9} {'transferred':>11} {'dropped':>9} {'spread':>8}  dropped by curve")
+        for name, clip in loaded:
+            source = sources.setdefault(clip.source_rig, resolve_rig(clip.source_rig))
+            annotations = propose_annotations(source, target)
+            report = transfer_report(transfer_clip(pairs[name], source, target, annotations), source, target)
+            _print_transfer_row(name, report)
+    return 0
+
+
 class _UsageError(Exception):
     pass
 
@@ -271,6 +384,34 @@ def build_parser() -> argparse.ArgumentParser:
     grab.add_argument("--vtemp", help="the subject's right-hand template mesh (778 vertices)")
     grab.add_argument("--grab-root", help="GRAB's root folder, to resolve the paths stored in the sequence")
     grab.set_defaults(func=_cmd_import_grab)
+
+    annotate = sub.add_parser("annotate", help="annotations (virtual markers, axial curves)")
+    annotate_sub = annotate.add_subparsers(dest="annotate_command", required=True)
+    a_prop = annotate_sub.add_parser("propose", help="propose annotations from two rigs' skeletons")
+    a_prop.add_argument("--source", required=True, help="source rig: a file or demo:NAME[@RESOLUTION]")
+    a_prop.add_argument("--target", required=True, help="target rig: a file or demo:NAME[@RESOLUTION]")
+    a_prop.add_argument("--out", required=True, help="annotation JSON to write")
+    a_prop.set_defaults(func=_cmd_annotate_propose)
+    a_demo = annotate_sub.add_parser("demo", help="annotations from the demo source hand to every demo hand")
+    a_demo.add_argument("--out", required=True)
+    a_demo.add_argument("--resolution", type=float, default=0.004, help="target hands' mesh cell size (m)")
+    a_demo.add_argument("--source-resolution", type=float, default=0.004, help="source hand's mesh cell size (m)")
+    a_demo.set_defaults(func=_cmd_annotate_demo)
+
+    transfer = sub.add_parser("transfer", help="carry a clip's contacts onto a target hand (report, PNG)")
+    transfer.add_argument("--clip", action="append", required=True, help="clip .npz (repeatable)")
+    transfer.add_argument("--rig", required=True, help="target rig: a file or demo:NAME[@RESOLUTION]")
+    transfer.add_argument("--annotations", required=True, help="annotation JSON")
+    transfer.add_argument("--source-rig", help="source rig (default: the one the clip records)")
+    transfer.add_argument("--frames", help="comma-separated frames (default: all; the PNG shows 4)")
+    transfer.add_argument("--out", help="folder for the report (.json) and the picture (.png)")
+    transfer.set_defaults(func=_cmd_transfer)
+    t_demo = sub.add_parser("transfer-demo", help="every demo clip onto every demo hand: shares and spread")
+    t_demo.add_argument("--clips", required=True, help="folder of demo clips")
+    t_demo.add_argument("--target", action="append", help="only this demo hand (repeatable)")
+    t_demo.add_argument("--resolution", type=float, default=0.004, help="target hands' mesh cell size (m)")
+    t_demo.add_argument("--every", type=int, default=5, help="use every N-th frame")
+    t_demo.set_defaults(func=_cmd_transfer_demo)
 
     bench = sub.add_parser("bench", help="print performance figures")
     bench_sub = bench.add_subparsers(dest="bench_command", required=True)

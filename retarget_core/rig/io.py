@@ -46,3 +46,21 @@ def save_rig(rig: Rig, path) -> None:
     from .usd_io import write_rig_usd
 
     write_rig_usd(rig, path)
+
+
+def resolve_rig(spec: str, **load_options) -> Rig:
+    """A rig from a file path, or a demo hand as ``demo:NAME`` or ``demo:NAME@RESOLUTION``
+    (metres; the clip format records its source rig this way, e.g. "demo:source_human@0.004")."""
+    spec = str(spec)
+    if spec.startswith("demo:"):
+        from .demo_hands import DEMO_HANDS, demo_hand
+
+        name, _, res = spec[len("demo:"):].partition("@")
+        if name not in DEMO_HANDS:
+            raise InputError(f"unknown demo hand {name!r}; known: {', '.join(DEMO_HANDS)}", element="rig")
+        try:
+            resolution = float(res) if res else 0.002
+        except ValueError as err:
+            raise InputError(f"bad resolution {res!r} in {spec!r}", element="rig") from err
+        return demo_hand(name, resolution=resolution)
+    return load_rig(spec, **load_options)

@@ -1,0 +1,148 @@
+"""Transfer of a whole clip's paired contacts onto a target hand, its report and its picture."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..mesh.surface_points import SurfacePoints
+from ..pairing.dense import ContactPairs
+from ..rig.model import Rig
+from .annotations import Annotations
+from .atlas import Atlas, TransferredContacts, get_atlas
+
+
+@dataclass
+class ClipTransfer:
+    """All frames' contacts of a clip carried to the target: ``contacts`` is aligned with the
+    pairs (N), ``frame_offsets`` (T+1,) splits them by frame (as in ContactPairs)."""
+
+    atlas: Atlas
+    pairs: ContactPairs
+    contacts: TransferredContacts
+
+    def frame(self, f: int) -> slice:
+        return slice(int(self.pairs.frame_offsets[f]), int(self.pairs.frame_offsets[f + 1]))
+
+
+def atlas_for(source: Rig, target: Rig, annotations: Annotations) -> Atlas:
+    """The (cached) atlas of two rigs' rest surfaces."""
+    return get_atlas(source.surface.vertices, source.surface.faces, target.surface.vertices, target.surface.faces,
+                     annotations)
+
+
+def transfer_clip(pairs: ContactPairs, source: Rig, target: Rig, annotations: Annotations) -> ClipTransfer:
+    """Carry every paired contact of every frame (the hand ends of ``pairs``, on ``source``'s
+    surface) onto ``target`` in one vectorised pass."""
+    if pairs.n_hand_faces != len(source.surface.faces):
+        raise InputError(
+            f"the contact pairs were made on a hand with {pairs.n_hand_faces} faces; the source rig "
+            f"{source.name!r} has {len(source.surface.faces)}", element="source rig")
+    atlas = atlas_for(source, target, annotations)
+    contacts = atlas.transfer(SurfacePoints(pairs.hand_face, pairs.hand_barycentric))
+    return ClipTransfer(atlas, pairs, contacts)
+
+
+def _spread(points: np.ndarray) -> float:
+    """RMS distance (m) of points (N, 3) from their centroid."""
+    return float(np.sqrt(((points - points.mean(axis=0)) ** 2).sum(axis=1).mean())) if len(points) else 0.0
+
+
+def transfer_report(result: ClipTransfer, source: Rig, target: Rig) -> dict:
+    """Shares transferred and dropped (in total and per curve) and how the contacts' spread
+    changes: per frame, the RMS distance of the contacts from their centroid on the target's rest
+    surface over the same on the source's (median over frames with contacts)."""
+    c = result.contacts
+    names = result.atlas.curve_names
+    total = len(c.dropped)
+    per_curve = {}
+    for i, name in enumerate(names):
+        mine = c.curve == i
+        per_curve[name] = {"contacts": int(mine.sum()), "dropped": int((mine & c.dropped).sum()),
+                           "discarded_chart": result.atlas.target_curves[i] is None}
+    src_pos = SurfacePoints(result.pairs.hand_face, result.pairs.hand_barycentric).positions(
+        source.surface.vertices, source.surface.faces)
+    tgt_pos = np.einsum("nk,nkd->nd", c.barycentric, target.surface.vertices[target.surface.faces[c.face]])
+    ratios = []
+    for f in range(len(result.pairs.frame_offsets) - 1):
+        sl = result.frame(f)
+        keep = ~c.dropped[sl]
+        if keep.sum() < 3:
+            continue
+        s = _spread(src_pos[sl][keep])
+        if s > 1e-6:
+            ratios.append(_spread(tgt_pos[sl][keep]) / s)
+    expected_drop = sum(v["contacts"] for v in per_curve.values() if v["discarded_chart"])
+    return {
+        "contacts": total,
+        "transferred": int(total - c.dropped.sum()),
+        "transferred_share": float(1 - c.dropped.mean()) if total else 1.0,
+        "dropped_share": float(c.dropped.mean()) if total else 0.0,
+        "dropped_on_discarded_charts": expected_drop,
+        "per_curve": per_curve,
+        "spread_ratio_median": float(np.median(ratios)) if ratios else None,
+        "spread_ratio_p10": float(np.percentile(ratios, 10)) if ratios else None,
+        "spread_ratio_p90": float(np.percentile(ratios, 90)) if ratios else None,
+    }
+
+
+CURVE_COLOURS = np.array([[220, 40, 40], [40, 150, 40], [40, 80, 220], [210, 160, 0], [160, 40, 200],
+                          [0, 160, 160], [120, 120, 120], [240, 120, 40], [90, 60, 30]], dtype=float)
+SKIN = np.array([230, 195, 170], dtype=float)
+
+
+def _painted(rig: Rig, points: SurfacePoints, curves: np.ndarray) -> np.ndarray:
+    """Per-vertex colours: skin, with each contact's nearest face corner painted by its curve."""
+    colours = np.tile(SKIN, (rig.surface.n_vertices, 1))
+    if len(points):
+        corners = rig.surface.faces[points.faces]
+        nearest = corners[np.arange(len(points)), np.argmax(points.barycentric, axis=1)]
+        colours[nearest] = CURVE_COLOURS[curves % len(CURVE_COLOURS)]
+    return colours
+
+
+def render_transfer(result: ClipTransfer, source: Rig, target: Rig, frames: list[int], path, *,
+                    size: int = 320) -> Path:
+    """PNG: one row per frame, the source hand with that frame's contacts and the target hand
+    with the transferred ones, both at rest seen from the palm side, contacts coloured by
+    their axial curve (the paper's contact-retarget figure)."""
+    from PIL import Image, ImageDraw
+
+    from ..render import Camera, render_meshes
+
+    c = result.contacts
+    rows = []
+    for f in frames:
+        if not 0 <= f < len(result.pairs.frame_offsets) - 1:
+            raise InputError(f"frame {f} is out of range", element="frames")
+        sl = result.frame(f)
+        keep = ~c.dropped[sl]
+        src_pts = SurfacePoints(result.pairs.hand_face[sl], result.pairs.hand_barycentric[sl])
+        tgt_pts = SurfacePoints(c.face[sl][keep], c.barycentric[sl][keep])
+        panels = []
+        for rig, pts, curves in ((source, src_pts, c.curve[sl]), (target, tgt_pts, c.curve[sl][keep])):
+            v = rig.surface.vertices
+            centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
+            extent = float(np.ptp(v[:, :2], axis=0).max())
+            camera = Camera(eye=centre - np.array([0.0, 0.0, 1.0]), target=centre, up=(0, 1, 0),
+                            projection="orthographic", ortho_height=extent * 1.08)
+            image = render_meshes([(v, rig.surface.faces, _painted(rig, pts, curves))], camera, (size, size))
+            panels.append(Image.fromarray(image))
+        row = Image.new("RGB", (2 * size, size), (255, 255, 255))
+        row.paste(panels[0], (0, 0))
+        row.paste(panels[1], (size, 0))
+        draw = ImageDraw.Draw(row)
+        n = sl.stop - sl.start
+        draw.text((6, 4), f"frame {f}: source ({n} contacts)", fill=(0, 0, 0))
+        draw.text((size + 6, 4), f"{target.name} ({int(keep.sum())} transferred)", fill=(0, 0, 0))
+        rows.append(row)
+    sheet = Image.new("RGB", (2 * size, size * len(rows)), (255, 255, 255))
+    for i, row in enumerate(rows):
+        sheet.paste(row, (0, i * size))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sheet.save(path)
+    return path
