@@ -55,11 +55,13 @@ def _rotate_about(v: np.ndarray, normal: np.ndarray, angle: float) -> np.ndarray
     return v * np.cos(angle) + np.cross(normal, v) * np.sin(angle) + normal * (normal @ v) * (1 - np.cos(angle))
 
 
-def initial_direction(geometry: SurfaceGeometry, face: int, bary: np.ndarray, toward: SurfacePoints):
-    """Unit direction (3,) in which the shortest geodesic from (face, bary) to ``toward`` leaves,
-    and that geodesic's length (m). The path comes from edge-flip geodesics; the direction is the
-    log-map direction, at the start, of the point 1 cm along it (accurate at that range; the
-    path's own first segment is bent by snapping the start to a vertex)."""
+def initial_direction(geometry: SurfaceGeometry, face: int, bary: np.ndarray, toward: SurfacePoints,
+                      iterations: int = 8, tolerance: float = 1e-5):
+    """Unit direction (3,) in which the geodesic from (face, bary) to ``toward`` leaves, and its
+    length (m). A first guess comes from the shortest path (edge-flip geodesics, the log-map
+    direction of the point 1 cm along it); then the direction and length are corrected by
+    shooting: trace, measure how far to the side and short the end lands, turn and stretch,
+    until the traced geodesic ends within ``tolerance`` of the point."""
     start = SurfacePoints(np.array([face]), np.asarray(bary, float)[None])
     path = geometry.shortest_path(start, toward)
     seg_lengths = np.linalg.norm(np.diff(path, axis=0), axis=1)
@@ -69,7 +71,22 @@ def initial_direction(geometry: SurfaceGeometry, face: int, bary: np.ndarray, to
     arclength = np.concatenate([[0.0], np.cumsum(seg_lengths)])
     aim_at = min(0.01, 0.5 * total)
     aim = np.array([np.interp(aim_at, arclength, path[:, k]) for k in range(3)])
-    return geometry.direction_toward(face, bary, geometry.closest_points(aim[None])), total
+    d = geometry.direction_toward(face, bary, geometry.closest_points(aim[None]))
+    goal = geometry.positions(toward)[0]
+    normal = geometry.face_normals[face]
+    for _ in range(iterations):
+        end = geometry.trace(face, bary, d, total)
+        miss = goal - end.position
+        end_normal = geometry.normal_at(end.face, end.barycentric)
+        left = np.cross(end_normal, end.direction)
+        lateral, along = float(miss @ left), float(miss @ end.direction)
+        if abs(lateral) < tolerance and abs(along) < tolerance:
+            break
+        d = _rotate_about(d, normal, np.arctan2(lateral, total))
+        d = d - (d @ normal) * normal
+        d /= np.linalg.norm(d)
+        total = max(total + along, 1e-6)
+    return d, total
 
 
 def _geodesic_leg(geometry: SurfaceGeometry, face: int, bary: np.ndarray, toward: SurfacePoints, spacing: float):

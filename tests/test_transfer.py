@@ -1,0 +1,249 @@
+"""Contact transfer through the atlas: identity, analytic cylinders checked against exact
+geodesics, lambda_a / lambda_s, discarded charts, caching and bad input."""
+
+import json
+
+import numpy as np
+import pygeodesic.geodesic as pygeodesic
+import pytest
+
+from retarget_core.clip.demo import build_demo_timeline, clip_from_timeline, source_rig
+from retarget_core.errors import InputError
+from retarget_core.mesh.implicit import capped_cylinder
+from retarget_core.mesh.isosurface import closed_surface_from_field, sample_grid
+from retarget_core.mesh.surface_points import SurfacePoints, closest_surface_points
+from retarget_core.pairing import pair_contacts
+from retarget_core.rig.demo_hands import demo_hand
+from retarget_core.transfer.annotations import (
+    Annotations,
+    AxialCurveAnnotation,
+    CurveTarget,
+    LambdaS,
+    MeshSignature,
+    PointRef,
+    annotations_from_dict,
+    annotations_to_dict,
+)
+from retarget_core.transfer.atlas import Atlas, get_atlas
+from retarget_core.transfer.clip_transfer import transfer_clip, transfer_report
+from retarget_core.transfer.geodesics import SurfaceGeometry
+from retarget_core.transfer.propose import propose_annotations
+
+
+@pytest.fixture(scope="module")
+def source():
+    return source_rig()
+
+
+@pytest.fixture(scope="module")
+def clip_pairs(source):
+    obj, timeline = build_demo_timeline("apple_rotate", time_scale=0.12, rig=source)
+    clip = clip_from_timeline("apple_rotate", obj, timeline, source, 0.004)
+    return clip, pair_contacts(clip)
+
+
+def test_identity_transfer_returns_every_contact_where_it_started(source, clip_pairs):
+    _, pairs = clip_pairs
+    annotations = propose_annotations(source, source)
+    result = transfer_clip(pairs, source, source, annotations)
+    assert not result.contacts.dropped.any()
+    start = SurfacePoints(pairs.hand_face, pairs.hand_barycentric).positions(source.surface.vertices, source.surface.faces)
+    end = result.contacts.target_points().positions(source.surface.vertices, source.surface.faces)
+    error = np.linalg.norm(end - start, axis=1)
+    assert len(error) > 500
+    assert error.max() < 0.0005
+
+
+def test_second_clip_onto_the_same_hand_reuses_the_atlas(source):
+    annotations = propose_annotations(source, source)
+    v, f = source.surface.vertices, source.surface.faces
+    assert get_atlas(v, f, v, f, annotations) is get_atlas(v, f, v, f, annotations)
+
+
+def test_three_fingered_hand_drops_exactly_the_discarded_charts(source, clip_pairs):
+    _, pairs = clip_pairs
+    alien = demo_hand("alien", resolution=0.004)
+    annotations = propose_annotations(source, alien)
+    assert {c.name for c in annotations.curves if c.discard} == {"ring", "pinky"}
+    result = transfer_clip(pairs, source, alien, annotations)
+    report = transfer_report(result, source, alien)
+    assert report["dropped_on_discarded_charts"] == report["contacts"] - report["transferred"]
+    assert report["per_curve"]["ring"]["dropped"] == report["per_curve"]["ring"]["contacts"]
+    assert report["per_curve"]["index"]["dropped"] == 0
+    assert 0 < report["dropped_share"] < 0.5
+    # transferred contacts land on the target surface, on the finger their chart belongs to
+    kept = ~result.contacts.dropped
+    owner = alien.surface.dense_weights(alien.n_joints).argmax(axis=1)
+    faces = alien.surface.faces[result.contacts.face[kept]]
+    curves = np.array(result.atlas.curve_names)[result.contacts.curve[kept]]
+    on_index = curves == "index"
+    joint_names = np.array(alien.joint_names)[owner[faces[on_index, 0]]]
+    assert np.mean([n.startswith("index") for n in joint_names]) > 0.9
+
+
+def test_proposals_follow_the_hands():
+    src = demo_hand("source_human", resolution=0.005)
+    witch = propose_annotations(src, demo_hand("witch", resolution=0.005))
+    assert all(c.target.lambda_a > 1.3 for c in witch.curves if c.name in ("index", "middle", "ring"))
+    assert all(c.target.lambda_s.uniform < 1.0 for c in witch.curves if c.name in ("index", "middle", "ring"))
+    robot = propose_annotations(src, demo_hand("robot4", resolution=0.005))
+    assert [c.name for c in robot.curves if c.discard] == ["pinky"]
+    # the proposal is a valid annotation file
+    annotations_from_dict(json.loads(json.dumps(annotations_to_dict(robot))))
+
+
+# ---- analytic case: cylinders ------------------------------------------------------------------
+def cylinder(radius, length, resolution=0.0012):
+    lower, upper = (-radius, -radius, 0.0), (radius, radius, length)
+    grid, shape, origin = sample_grid(np.array(lower), np.array(upper), resolution)
+    field = capped_cylinder(grid, radius, 0.0, length, rounding=0.4 * radius)
+    return closed_surface_from_field(field.reshape(shape), origin, resolution)
+
+
+def surface_point(vertices, faces, xyz):
+    sp = closest_surface_points(vertices, faces, np.asarray(xyz, float)[None])
+    return PointRef(face=int(sp.faces[0]), barycentric=tuple(float(x) for x in sp.barycentric[0]))
+
+
+def finger_annotations(src, tgt, r1, r2, length1, length2, lambda_a, lambda_s):
+    """One axial curve along each cylinder's side (the generator line at angle 0, +X)."""
+    z0 = 0.02
+    return Annotations(
+        source=MeshSignature("cylinder1", len(src[0]), len(src[1])),
+        target=MeshSignature("cylinder2", len(tgt[0]), len(tgt[1])),
+        markers=(),
+        curves=(AxialCurveAnnotation(
+            name="finger",
+            source_start=surface_point(*src, (r1, 0, z0)), source_end=surface_point(*src, (r1, 0, length1 - z0)),
+            target=CurveTarget(start=surface_point(*tgt, (r2, 0, z0)), direction=surface_point(*tgt, (r2, 0, length2 - z0)),
+                               lambda_a=lambda_a, lambda_s=LambdaS.constant(lambda_s))),),
+    )
+
+
+@pytest.fixture(scope="module")
+def cylinders():
+    return cylinder(0.010, 0.10), cylinder(0.014, 0.13)
+
+
+def patch(r1, heights, angles):
+    """Points on the side of the source cylinder (radius r1) at given heights and angles."""
+    h, a = np.meshgrid(heights, angles)
+    return np.column_stack([r1 * np.cos(a.ravel()), r1 * np.sin(a.ravel()), h.ravel()])
+
+
+@pytest.mark.parametrize("lambda_a, lambda_s", [(1.0, 1.0), (1.3, 1.0), (1.0, 1.4), (1.3, 1.4)])
+def test_cylinder_patch_moves_where_geodesics_say(cylinders, lambda_a, lambda_s):
+    (v1, f1), (v2, f2) = cylinders
+    r1, r2 = 0.010, 0.014
+    annotations = finger_annotations((v1, f1), (v2, f2), r1, r2, 0.10, 0.13, lambda_a, lambda_s)
+    atlas = Atlas(SurfaceGeometry(v1, f1), SurfaceGeometry(v2, f2), annotations)
+    heights = np.array([0.035, 0.05, 0.065])
+    angles = np.array([-0.5, -0.25, 0.0, 0.25, 0.5])  # radians around the source cylinder
+    points = closest_surface_points(v1, f1, patch(r1, heights, angles))
+    result = atlas.transfer(points)
+    assert not result.dropped.any()
+    out = SurfacePoints(result.face, result.barycentric).positions(v2, f2)
+    start = 0.02
+    # Along the axis: the landmark's arclength stretched by lambda_a (the contact sits beside it).
+    expected_z = start + (points.positions(v1, f1)[:, 2] - start) * lambda_a
+    assert np.abs(out[:, 2] - expected_z).max() < 0.0015
+    # Around the axis: the geodesic distance from the curve, r1 * angle, scaled by lambda_s,
+    # wraps the larger cylinder by that arc.
+    h, a = np.meshgrid(heights, angles)
+    expected_angle = r1 * a.ravel() * lambda_s / r2
+    got_angle = np.arctan2(out[:, 1], out[:, 0])
+    assert np.abs(got_angle - expected_angle).max() < 0.03
+    # And against exact (MMP) geodesics on the target mesh: the distance from each contact's
+    # target landmark equals lambda_s times its source chart radius.
+    exact = pygeodesic.PyGeodesicAlgorithmExact(v2, f2)
+    for i in range(0, len(out), 3):
+        m = result.landmark[i]
+        curve = atlas.target_curves[atlas.landmark_curve[m]]
+        k = atlas.landmark_index[m]
+        landmark_vertex = int(f2[curve.faces[k]][np.argmax(curve.barycentric[k])])
+        corner = int(f2[result.face[i]][np.argmax(result.barycentric[i])])
+        distance, _ = exact.geodesicDistance(landmark_vertex, corner)
+        # both ends snapped to vertices: allow an edge length or so
+        assert abs(distance - lambda_s * result.radius[i]) < 0.0025
+
+
+def test_lambda_s_as_a_function_of_angle(cylinders):
+    (v1, f1), (v2, f2) = cylinders
+    annotations = finger_annotations((v1, f1), (v2, f2), 0.010, 0.014, 0.10, 0.13, 1.0, 1.0)
+    curve = annotations.curves[0]
+    # twice as far to the left of the curve (+90 deg), unchanged to the right (-90 deg)
+    stretched = LambdaS.piecewise([0, 90, 180, 270], [1.0, 2.0, 1.0, 1.0])
+    annotations = Annotations(annotations.source, annotations.target, (), (AxialCurveAnnotation(
+        name=curve.name, source_start=curve.source_start, source_end=curve.source_end,
+        target=CurveTarget(curve.target.start, curve.target.direction, 1.0, stretched)),))
+    atlas = Atlas(SurfaceGeometry(v1, f1), SurfaceGeometry(v2, f2), annotations)
+    # Walking up the curve (+Z) on the +X side, "left" (counter-clockwise about the outward
+    # normal +X) is toward -Y: the point at -0.3 rad around the axis.
+    left_right = closest_surface_points(v1, f1, patch(0.010, [0.05], [-0.3, 0.3]))
+    result = atlas.transfer(left_right)
+    assert result.angle[0] == pytest.approx(np.pi / 2, abs=0.05)
+    assert result.angle[1] == pytest.approx(-np.pi / 2, abs=0.05)
+    out = SurfacePoints(result.face, result.barycentric).positions(v2, f2)
+    arc = np.abs(np.arctan2(out[:, 1], out[:, 0])) * 0.014
+    assert arc[0] == pytest.approx(2 * arc[1], rel=0.15)
+
+
+# ---- bad input ---------------------------------------------------------------------------------
+def test_curve_across_disconnected_parts_is_named(cylinders):
+    (v1, f1), _ = cylinders
+    two_v = np.vstack([v1, v1 + [0.1, 0, 0]])
+    two_f = np.vstack([f1, f1 + len(v1)])
+    annotations = Annotations(
+        MeshSignature("two", len(two_v), len(two_f)), MeshSignature("one", len(v1), len(f1)), (),
+        (AxialCurveAnnotation(name="bridge", source_start=surface_point(two_v, two_f, (0.01, 0, 0.05)),
+                              source_end=surface_point(two_v, two_f, (0.11, 0, 0.05)),
+                              target=CurveTarget(surface_point(v1, f1, (0.01, 0, 0.03)), surface_point(v1, f1, (0.01, 0, 0.08)),
+                                                 1.0, LambdaS.constant(1.0))),))
+    with pytest.raises(InputError, match="axial curve 'bridge'.*disconnected"):
+        Atlas(SurfaceGeometry(two_v, two_f), SurfaceGeometry(v1, f1), annotations)
+
+
+def open_tube(radius, length, n_around=32, n_along=40):
+    a = np.linspace(0, 2 * np.pi, n_around, endpoint=False)
+    z = np.linspace(0, length, n_along)
+    v = np.array([[radius * np.cos(t), radius * np.sin(t), h] for h in z for t in a])
+    faces = []
+    for i in range(n_along - 1):
+        for j in range(n_around):
+            p, q = i * n_around + j, i * n_around + (j + 1) % n_around
+            faces += [[p, q, p + n_around], [q, q + n_around, p + n_around]]
+    return v, np.array(faces)
+
+
+def test_target_curve_running_off_the_boundary_is_named(cylinders):
+    (v1, f1), _ = cylinders
+    v2, f2 = open_tube(0.01, 0.05)
+    annotations = finger_annotations((v1, f1), (v2, f2), 0.010, 0.010, 0.10, 0.05, 1.0, 1.0)
+    with pytest.raises(InputError, match="axial curve 'finger'.*runs off the mesh boundary"):
+        Atlas(SurfaceGeometry(v1, f1), SurfaceGeometry(v2, f2), annotations)
+
+
+def test_non_manifold_target_is_rejected(cylinders):
+    (v1, f1), _ = cylinders
+    bad_f = np.vstack([f1, [[f1[0, 0], f1[0, 1], len(v1)]]])
+    bad_v = np.vstack([v1, [[0.0, 0.0, 0.2]]])
+    with pytest.raises(InputError, match="manifold"):
+        SurfaceGeometry(bad_v, bad_f, name="target surface")
+
+
+def test_annotations_for_another_rig_are_rejected(source, cylinders):
+    annotations = propose_annotations(source, source)
+    (v1, f1), _ = cylinders
+    with pytest.raises(InputError, match="another rig"):
+        Atlas(SurfaceGeometry(v1, f1), SurfaceGeometry(v1, f1), annotations)
+
+
+def test_point_outside_the_mesh_is_named(source):
+    data = annotations_to_dict(propose_annotations(source, source))
+    data["axial_curves"][1]["target"]["start"] = {"vertex": 10**7}
+    with pytest.raises(InputError, match=r"axial_curves\[1\]\.target\.start: vertex 10000000 out of range"):
+        annotations_from_dict(data)
+    data = annotations_to_dict(propose_annotations(source, source))
+    data["axial_curves"][1]["target"]["lambda_a"] = 0
+    with pytest.raises(InputError, match="lambda_a"):
+        annotations_from_dict(data)
