@@ -314,6 +314,19 @@ def _cmd_transfer_demo(args) -> int:
     return 0
 
 
+def _cmd_bench_transfer(args) -> int:
+    from .benchmarks.transfer import run_transfer_benchmark
+
+    fig = run_transfer_benchmark(n_frames=args.frames, contacts_per_frame=args.contacts, target=args.target,
+                                 target_resolution=args.resolution)
+    print(f"transfer benchmark: {fig['frames']} frames x {fig['contacts_per_frame']} contacts onto {fig['target']} "
+          f"({fig['target_vertices']} vertices, {fig['landmarks']} landmarks), one thread")
+    print(f"  per-landmark set-up (once per hand pair): {fig['setup_seconds']:.1f} s")
+    print(f"  transfer of {fig['contacts']} contacts: {fig['transfer_seconds']:.2f} s "
+          f"({fig['contacts_per_second']:.0f} contacts/s), {fig['dropped']} dropped")
+    return 0
+
+
 class _UsageError(Exception):
     pass
 
@@ -427,6 +440,12 @@ def build_parser() -> argparse.ArgumentParser:
     pair.add_argument("--contacts", type=int, default=300, help="contacts per frame")
     pair.add_argument("--clip", help="time a clip file instead of the synthetic one")
     pair.set_defaults(func=_cmd_bench_pairing)
+    xfer = bench_sub.add_parser("transfer", help="contact transfer onto a ~10k-vertex target")
+    xfer.add_argument("--frames", type=int, default=1000)
+    xfer.add_argument("--contacts", type=int, default=300, help="contacts per frame")
+    xfer.add_argument("--target", default="human_alt", help="demo hand")
+    xfer.add_argument("--resolution", type=float, default=0.0025, help="target mesh cell size (m)")
+    xfer.set_defaults(func=_cmd_bench_transfer)
     return parser
 
 

@@ -107,7 +107,7 @@ class Atlas:
             distance = source.geodesic_distance(f, b)
             valid = source.valid_chart_vertices(f, b, coords, distance)
             self.source_coords[m] = coords
-            self.source_valid_faces[m] = source.valid_chart_faces(coords, valid, distance)
+            self.source_valid_faces[m] = source.valid_chart_faces(coords, valid, distance, chart_radius)
             self.source_charts.append(LogChart(source.faces, coords, chart_radius, self.source_valid_faces[m], distance))
             radius[m, valid] = np.linalg.norm(coords[valid], axis=1)
         # geodesic Voronoi cell of every vertex (vertices no chart trusts go to the nearest by
@@ -128,10 +128,11 @@ class Atlas:
             f, b = int(tc.faces[k]), tc.barycentric[k]
             coords = target.log_map(f, b, tc.directions[k])
             distance = target.geodesic_distance(f, b)
-            valid_faces = target.valid_chart_faces(coords, target.valid_chart_vertices(f, b, coords, distance), distance)
             lambda_s = annotations.curves[self.landmark_curve[m]].target.lambda_s
             scale = float(np.max(lambda_s(np.linspace(-np.pi, np.pi, 73))))
             reach = chart_radius * max(scale, 1.0)
+            valid_faces = target.valid_chart_faces(coords, target.valid_chart_vertices(f, b, coords, distance), distance,
+                                                   reach)
             self.target_charts.append(LogChart(target.faces, coords, reach, valid_faces, distance))
 
     @property
@@ -174,7 +175,7 @@ class Atlas:
             if len(usable) == 0:
                 continue
             cxy = np.einsum("k,mkd->md", bary[i], self.source_coords[usable][:, corners[i]].astype(np.float64))
-            for j in np.argsort(np.linalg.norm(cxy, axis=1)):
+            for j in np.argsort(np.linalg.norm(cxy, axis=1))[:4]:
                 if self._round_trips(usable[j:j + 1], cxy[j:j + 1], positions[i:i + 1])[0]:
                     landmark[i], chart_xy[i] = usable[j], cxy[j]
                     break

@@ -127,13 +127,15 @@ class SurfaceGeometry:
         radius = np.linalg.norm(coords, axis=1)
         return np.abs(radius - distance) <= 0.15 * distance + self.edge_length
 
-    def valid_chart_faces(self, coords: np.ndarray, valid_vertices: np.ndarray, distance: np.ndarray) -> np.ndarray:
+    def valid_chart_faces(self, coords: np.ndarray, valid_vertices: np.ndarray, distance: np.ndarray,
+                          radius: float = np.inf) -> np.ndarray:
         """(F,) faces laid out faithfully by a chart: corners trustworthy, positively oriented,
         edges neither squashed nor stretched by more than a factor 4 (a log map stretches
         angularly near the cut locus of a fingertip, but stays usable), and not covered in the
         layout by a face geodesically nearer the landmark (where the map folds over itself only
-        the near sheet is kept, so the chart is one-to-one)."""
+        the near sheet is kept, so the chart is one-to-one); within ``radius`` metres."""
         keep = self._faithful_faces(coords, valid_vertices)
+        keep &= np.linalg.norm(coords[self.faces], axis=2).max(axis=1) <= radius  # the chart's extent
         ids = np.nonzero(keep)[0]
         if len(ids) < 2:
             return keep
