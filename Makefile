@@ -28,6 +28,8 @@ test: setup
 
 bench: setup
 	$(BIN)/handretarget bench kinematics
+	$(BIN)/handretarget bench pairing
+	$(BIN)/handretarget bench transfer
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT)

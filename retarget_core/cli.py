@@ -46,7 +46,8 @@ def _cmd_rig_info(args) -> int:
 
 def _cmd_demo(args) -> int:
     """The README's main job: the demo hand library (USD), the demonstration clips, their
-    dense contact pairing and a PNG strip of each clip. Later stages extend it."""
+    dense contact pairing, a PNG strip of each clip, annotations from the source hand to every
+    demo hand and the contact transfer onto each (report and pictures). Later stages extend it."""
     out = Path(args.out)
     print(f"== demo hand library -> {out / 'rigs'}")
     _cmd_rig_demo(argparse.Namespace(out=out / "rigs", hand=None, resolution=args.resolution))
@@ -60,6 +61,19 @@ def _cmd_demo(args) -> int:
     for path in clips:
         _cmd_clip_render(argparse.Namespace(path=path, out=path.with_suffix(".png"), frames=None, count=6,
                                             view="three_quarter", size="320x320"))
+    print(f"\n== annotations -> {out / 'annotations'}")
+    _cmd_annotate_demo(argparse.Namespace(out=out / "annotations", resolution=args.resolution, source_resolution=0.004))
+    print(f"\n== contact transfer onto every demo hand -> {out / 'transfer'}")
+    from .clip import load_clip
+    from .pairing import load_contact_pairs
+    from .rig.demo_hands import DEMO_HANDS, demo_hand
+    from .transfer.annotations import load_annotations
+
+    jobs = [(c.stem, load_clip(c), load_contact_pairs(c.with_name(c.stem + ".pairs.npz"))) for c in clips]
+    for name in DEMO_HANDS:
+        print(f"-- {name}")
+        _transfer_table(jobs, None, demo_hand(name, resolution=args.resolution),
+                        load_annotations(out / "annotations" / f"{name}.json"), out / "transfer" / name, None)
     return 0
 
 
@@ -254,26 +268,34 @@ def _print_transfer_row(name, report):
 
 def _cmd_transfer(args) -> int:
     from .pairing import pair_contacts
-    from .transfer.clip_transfer import render_transfer, transfer_clip, transfer_report
 
     load_clip, resolve_rig, target, annotations = _transfer_setup(args)
-    print(f"{'clip':<22} {'contacts':>9} {'transferred':>11} {'dropped':>9} {'spread':>8}  dropped by curve")
+    frames = [int(f) for f in args.frames.split(",")] if args.frames else None
+    jobs = []
     for clip_path in args.clip:
         clip = load_clip(clip_path)
-        source = resolve_rig(args.source_rig or clip.source_rig or "")
-        frames = [int(f) for f in args.frames.split(",")] if args.frames else None
-        pairs = pair_contacts(clip, frames=frames)
-        result = transfer_clip(pairs, source, target, annotations)
-        report = transfer_report(result, source, target)
-        _print_transfer_row(Path(clip_path).stem, report)
-        if args.out:
-            out = Path(args.out)
-            out.mkdir(parents=True, exist_ok=True)
-            (out / f"{Path(clip_path).stem}.transfer.json").write_text(json.dumps(report, indent=2))
-            shown = frames or _contact_rich_frames(pairs, 4)
-            png = render_transfer(result, source, target, shown, out / f"{Path(clip_path).stem}.transfer.png")
-            print(f"  wrote {png}")
+        jobs.append((Path(clip_path).stem, clip, pair_contacts(clip, frames=frames)))
+    _transfer_table(jobs, resolve_rig(args.source_rig) if args.source_rig else None, target, annotations,
+                    Path(args.out) if args.out else None, frames)
     return 0
+
+
+def _transfer_table(jobs, source, target, annotations, out, frames) -> None:
+    """Transfer each (name, clip, pairs) onto ``target``; print a row each; with ``out``, write
+    the report (JSON) and a picture (PNG) per clip."""
+    from .rig.io import resolve_rig
+    from .transfer.clip_transfer import render_transfer, transfer_clip, transfer_report
+
+    print(f"{'clip':<22} {'contacts':>9} {'transferred':>11} {'dropped':>9} {'spread':>8}  dropped by curve")
+    for name, clip, pairs in jobs:
+        src = source or resolve_rig(clip.source_rig)
+        result = transfer_clip(pairs, src, target, annotations)
+        report = transfer_report(result, src, target)
+        _print_transfer_row(name, report)
+        if out is not None:
+            out.mkdir(parents=True, exist_ok=True)
+            (out / f"{name}.transfer.json").write_text(json.dumps(report, indent=2))
+            render_transfer(result, src, target, frames or _contact_rich_frames(pairs, 4), out / f"{name}.transfer.png")
 
 
 def _contact_rich_frames(pairs, count: int) -> list[int]:
@@ -341,7 +363,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser("demo", help="run the main demo job")
     demo.add_argument("--out", default="demo_out", help="output folder")
-    demo.add_argument("--resolution", type=float, default=0.002, help="hand mesh cell size in metres")
+    demo.add_argument("--resolution", type=float, default=0.003, help="demo hands' mesh cell size in metres")
     demo.add_argument("--clip", action="append", help="only this demo clip (repeatable)")
     demo.add_argument("--time-scale", type=float, default=1.0, help="shorten (<1) the demo clips")
     demo.set_defaults(func=_cmd_demo)
