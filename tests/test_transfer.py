@@ -131,12 +131,13 @@ def patch(r1, heights, angles):
     return np.column_stack([r1 * np.cos(a.ravel()), r1 * np.sin(a.ravel()), h.ravel()])
 
 
-@pytest.mark.parametrize("lambda_a, lambda_s", [(1.0, 1.0), (1.3, 1.0), (1.0, 1.4), (1.3, 1.4)])
-def test_cylinder_patch_moves_where_geodesics_say(cylinders, lambda_a, lambda_s):
+@pytest.mark.parametrize("lambda_a, lambda_s, reconstruction", [
+    (1.0, 1.0, "chart"), (1.3, 1.0, "chart"), (1.0, 1.4, "chart"), (1.3, 1.4, "chart"), (1.3, 1.4, "trace")])
+def test_cylinder_patch_moves_where_geodesics_say(cylinders, lambda_a, lambda_s, reconstruction):
     (v1, f1), (v2, f2) = cylinders
     r1, r2 = 0.010, 0.014
     annotations = finger_annotations((v1, f1), (v2, f2), r1, r2, 0.10, 0.13, lambda_a, lambda_s)
-    atlas = Atlas(SurfaceGeometry(v1, f1), SurfaceGeometry(v2, f2), annotations)
+    atlas = Atlas(SurfaceGeometry(v1, f1), SurfaceGeometry(v2, f2), annotations, reconstruction=reconstruction)
     heights = np.array([0.035, 0.05, 0.065])
     angles = np.array([-0.5, -0.25, 0.0, 0.25, 0.5])  # radians around the source cylinder
     points = closest_surface_points(v1, f1, patch(r1, heights, angles))

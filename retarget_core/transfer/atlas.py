@@ -57,7 +57,15 @@ class Atlas:
     :func:`get_atlas` (cached) or directly."""
 
     def __init__(self, source: SurfaceGeometry, target: SurfaceGeometry, annotations: Annotations, *,
-                 chart_radius: float = CHART_RADIUS):
+                 chart_radius: float = CHART_RADIUS, reconstruction: str = "chart"):
+        """``reconstruction``: "chart" (default) rebuilds a contact at chart coordinates
+        (lambda_s r, theta) by inverting the target landmark's discrete log map, the same map
+        type that wrote it on the source, so an identical pair of hands gives every contact
+        back exactly; "trace" walks the geodesic (the exponential map) from the landmark
+        instead, as the paper describes: as accurate on smooth surfaces, about 10x slower."""
+        if reconstruction not in ("chart", "trace"):
+            raise InputError(f"reconstruction must be 'chart' or 'trace', got {reconstruction!r}")
+        self.reconstruction = reconstruction
         annotations.check_meshes(source.faces, len(source.vertices), target.faces, len(target.vertices))
         self.annotations = annotations
         self.source, self.target = source, target
@@ -139,6 +147,26 @@ class Atlas:
     def n_landmarks(self) -> int:
         return len(self.landmark_curve)
 
+    def _trace_from_landmark(self, m: int, radius: np.ndarray, angle: np.ndarray):
+        """Exponential map at target landmark m: trace (radius, angle) geodesics, angle measured
+        counter-clockwise about the outward normal from the curve's direction."""
+        curve = self.target_curves[self.landmark_curve[m]]
+        k = self.landmark_index[m]
+        f0, b0 = int(curve.faces[k]), curve.barycentric[k]
+        normal = self.target.face_normals[f0]
+        zero = curve.directions[k] - (curve.directions[k] @ normal) * normal
+        zero /= np.linalg.norm(zero)
+        side = np.cross(normal, zero)
+        faces = np.zeros(len(radius), dtype=np.int64)
+        barys = np.zeros((len(radius), 3))
+        for i, (r, a) in enumerate(zip(radius, angle)):
+            if r < 1e-9:
+                faces[i], barys[i] = f0, b0
+                continue
+            end = self.target.trace(f0, b0, np.cos(a) * zero + np.sin(a) * side, float(r))
+            faces[i], barys[i] = end.face, end.barycentric
+        return faces, barys
+
     def source_chart_coordinates(self, points: SurfacePoints):
         """Nearest landmark (N,) and chart coordinates (N, 2) of source surface points.
 
@@ -209,9 +237,11 @@ class Atlas:
                 continue
             lambda_s = self.annotations.curves[self.landmark_curve[m]].target.lambda_s
             scale = lambda_s(angle[rows])
-            target_xy = xy[rows] * scale[:, None]
-            f, b, _ = self.target_charts[m].locate(target_xy)
-            face[rows], bary[rows] = f, b
+            if self.reconstruction == "chart":
+                f, b, _ = self.target_charts[m].locate(xy[rows] * scale[:, None])
+                face[rows], bary[rows] = f, b
+            else:
+                face[rows], bary[rows] = self._trace_from_landmark(m, radius[rows] * scale, angle[rows])
         return TransferredContacts(face, bary, landmark, curve, dropped, radius, angle)
 
 
