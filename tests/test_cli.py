@@ -107,3 +107,28 @@ def test_import_grab_command_end_to_end(tmp_path, capsys):
     assert "wrote" in capsys.readouterr().out
     clip = load_clip(out)
     assert clip.n_frames == 6 and clip.object_name == "apple" and len(clip.marker_names) == 25
+
+
+def test_annotate_propose_and_transfer_commands(clip_dir, tmp_path, capsys):
+    annotations = tmp_path / "alien.json"
+    assert main(["annotate", "propose", "--source", "demo:source_human@0.004", "--target", "demo:alien@0.006",
+                 "--out", str(annotations)]) == 0
+    text = capsys.readouterr().out
+    assert "discarded ring, pinky" in text
+    assert main(["transfer", "--clip", str(clip_dir / "box_pinch.npz"), "--rig", "demo:alien@0.006",
+                 "--annotations", str(annotations), "--out", str(tmp_path / "out")]) == 0
+    text = capsys.readouterr().out
+    assert re.search(r"box_pinch\s+\d+\s+[\d.]+%", text)
+    report = json.loads((tmp_path / "out" / "box_pinch.transfer.json").read_text())
+    assert report["contacts"] > 0 and 0.0 <= report["transferred_share"] <= 1.0
+    assert (tmp_path / "out" / "box_pinch.transfer.png").is_file()
+
+
+def test_transfer_with_annotations_for_another_rig_is_a_clear_error(clip_dir, tmp_path, capsys):
+    annotations = tmp_path / "witch.json"
+    assert main(["annotate", "propose", "--source", "demo:source_human@0.004", "--target", "demo:witch@0.006",
+                 "--out", str(annotations)]) == 0
+    capsys.readouterr()
+    assert main(["transfer", "--clip", str(clip_dir / "box_pinch.npz"), "--rig", "demo:alien@0.006",
+                 "--annotations", str(annotations)]) == 2
+    assert "another rig" in capsys.readouterr().err
