@@ -54,6 +54,18 @@ def test_vector_jacobian_product_equals_transposed_jacobian(demo_rigs, rng):
     np.testing.assert_allclose(kin.points_vjp(q, binding, cotangent), np.einsum("pa,pad->d", cotangent, jac), rtol=1e-10, atol=1e-12)
 
 
+def test_normal_vector_jacobian_product_equals_transposed_jacobian(demo_rigs, rng):
+    rig = demo_rigs["alien"]
+    kin = rig.kinematics()
+    binding = kin.bind(_random_points(rig, rng, 200))
+    q = rig.random_pose(rng)
+    cotangent = rng.normal(size=(200, 3))
+    n, jac = kin.normals_jacobian(q, binding)
+    n2, grad = kin.normals_vjp(q, binding, cotangent)
+    np.testing.assert_allclose(n2, n, atol=1e-12)
+    np.testing.assert_allclose(grad, np.einsum("pa,pad->d", cotangent, jac), rtol=1e-9, atol=1e-12)
+
+
 def _two_link_rig():
     """A root that translates and spins about Z, and an elbow 1 m along X that bends about Z.
     A unit square of two triangles sits on the second link, rigidly skinned."""

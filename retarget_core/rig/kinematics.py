@@ -250,6 +250,26 @@ class Kinematics:
             grad[tr] = np.einsum("da,da->d", axis[tr], force[a[tr]])
         return grad
 
+    def normals_vjp(self, pose: Pose | np.ndarray, binding: SurfaceBinding, cotangent: np.ndarray):
+        """Unit normals (P, 3) and the (D,) gradient sum_p cotangent[p] . dnormal_p/dq, without
+        forming the Jacobian: with u = sum_j R_j z_j and n = u/|u|, dn = (I - n n^T) du / |u|,
+        du/dq_d = omega_d x sum_{j in sub(a)} R_j z_j, so the gradient is omega_d . (subtree sum of
+        sum_p (R_j z_jp) x w_p) with w = (I - n n^T) cotangent / |u|."""
+        pose = self._as_pose(pose)
+        contrib = pose.skin[:, :3, :3] @ binding.z  # (J, 3, P)
+        u = contrib.sum(axis=0)  # (3, P)
+        length = np.sqrt(np.einsum("ap,ap->p", u, u))
+        n = u / length
+        c = np.asarray(cotangent, dtype=np.float64).T  # (3, P)
+        w = (c - n * np.einsum("ap,ap->p", n, c)) / length
+        moments = contrib @ w.T  # (J, 3, 3): sum_p a_p (x) w_p
+        torque = np.stack([moments[:, 1, 2] - moments[:, 2, 1], moments[:, 2, 0] - moments[:, 0, 2],
+                           moments[:, 0, 1] - moments[:, 1, 0]], axis=1)
+        torque = self.subtree @ torque
+        grad = np.einsum("da,da->d", pose.dof_axis, torque[self.dof_joint])
+        grad[~self.is_rotation] = 0.0
+        return n.T, grad
+
     def normals(self, pose: Pose | np.ndarray, binding: SurfaceBinding) -> np.ndarray:
         """(P, 3) unit skinned normals of bound surface points."""
         pose = self._as_pose(pose)

@@ -1,0 +1,425 @@
+"""The retargeting result as a USD layer (and as JSON for robot users).
+
+Layout written by :func:`write_animation_usd` (stage metadata ``metersPerUnit = 1``,
+``upAxis = "Z"``, ``timeCodesPerSecond = framesPerSecond = fps``, ``startTimeCode = 0``,
+``endTimeCode = n_frames - 1``; time code = frame number, seconds = code / fps)::
+
+    subLayers = [@<rig file, relative to the output folder>@]   (when ``rig_file`` is given;
+                                                                  otherwise the rig itself is
+                                                                  written into the layer)
+    /<RigRoot>                 SkelRoot (from the rig)
+      Skeleton                 over: SkelBindingAPI, skel:animationSource = </<RigRoot>/Animation>
+      Animation                SkelAnimation: joints = the Skeleton's joint tokens; translations
+                               (float3[]), rotations (quatf[]), scales (half3[]) of the LOCAL
+                               joint transforms, time-sampled at every frame
+      DofCurves                Scope: one ``double dof:<name>`` attribute per DOF carrying a
+                               native Ts spline equal to the fitted cubic B-spline; customData
+                               ``handretarget = {dofName, knots, coefficients, degree,
+                               timeUnit = "seconds", fps, extrapolation}``
+    /Object                    Xform, xformOp:transform time-sampled per frame (when given)
+      Mesh                     the object's mesh in its own frame
+
+B-spline -> Ts spline: a Bezier knot at every breakpoint b (time code b * fps) with the
+curve's value there, pre / post tangent slopes = the B-spline's left / right derivatives
+(per time code, i.e. d/dt / fps) and tangent widths a third of the adjacent interval (in
+time codes). A cubic Bezier whose time handles sit at thirds is the cubic polynomial itself,
+so the Ts spline equals the B-spline up to rounding. Extrapolation: held (or linear, as the
+curve says) on both sides.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..files import atomic_path
+from ..fit.splines import BSplineCurve
+from ..rig.model import Rig
+
+FORMAT_NAME = "handretarget.animation"
+FORMAT_VERSION = 1
+DOF_PREFIX = "dof:"
+CUSTOM_KEY = "handretarget"
+_USD_EXTENSIONS = (".usda", ".usdc", ".usd")
+
+
+def _pxr():
+    from pxr import Gf, Sdf, Tf, Ts, Usd, UsdGeom, UsdSkel, Vt  # noqa: F401
+
+    return Gf, Sdf, Tf, Ts, Usd, UsdGeom, UsdSkel, Vt
+
+
+def _json_default(obj):
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
+
+
+# ---- B-spline -> Ts spline ---------------------------------------------------------------
+def bspline_to_ts(curve: BSplineCurve, fps: float):
+    """A ``Ts.Spline`` of value type double, in time codes (seconds * fps), equal to ``curve``."""
+    Gf, Sdf, Tf, Ts, Usd, UsdGeom, UsdSkel, Vt = _pxr()
+    fps = float(fps)
+    segments = curve.to_bezier()  # (t0, t1, p0, p1, p2, p3) in seconds
+    spline = Ts.Spline("double")
+    spline.SetCurveType(Ts.CurveTypeBezier)
+    n = len(segments)
+    for i in range(n + 1):
+        prev = segments[i - 1] if i > 0 else None
+        nxt = segments[i] if i < n else None
+        time_s = nxt[0] if nxt is not None else prev[1]
+        # value: right limit (start of the next segment), or the end value at the last knot
+        value = nxt[2] if nxt is not None else prev[5]
+        knot = Ts.Knot(typeName="double", time=float(time_s * fps), value=float(value))
+        if prev is not None:
+            h = prev[1] - prev[0]
+            slope_s = (prev[5] - prev[4]) * 3.0 / h  # f'(b-) from the Bezier handle
+            knot.SetPreTanWidth(float(h * fps / 3.0))
+            knot.SetPreTanSlope(float(slope_s / fps))
+            if abs(prev[5] - value) > 0.0:  # a jump (only with full-multiplicity knots)
+                knot.SetPreValue(float(prev[5]))
+        if nxt is not None:
+            h = nxt[1] - nxt[0]
+            slope_s = (nxt[3] - nxt[2]) * 3.0 / h  # f'(b+)
+            knot.SetPostTanWidth(float(h * fps / 3.0))
+            knot.SetPostTanSlope(float(slope_s / fps))
+            knot.SetNextInterpolation(Ts.InterpCurve)
+        else:
+            knot.SetNextInterpolation(Ts.InterpHeld)
+        spline.SetKnot(knot)
+    mode = Ts.ExtrapLinear if curve.extrapolation == "linear" else Ts.ExtrapHeld
+    spline.SetPreExtrapolation(Ts.Extrapolation(mode))
+    spline.SetPostExtrapolation(Ts.Extrapolation(mode))
+    return spline
+
+
+# ---- helpers -------------------------------------------------------------------------------
+def _unique_tokens(names, make_valid, *, prefix=""):
+    used, out = set(), []
+    for name in names:
+        base = make_valid(str(name)) or "dof"
+        token, k = base, 2
+        while token in used:
+            token, k = f"{base}_{k}", k + 1
+        used.add(token)
+        out.append(prefix + token)
+    return out
+
+
+def local_joint_transforms(rig: Rig, q: np.ndarray) -> np.ndarray:
+    """(J, 4, 4) local (parent-relative) joint transforms at DOF values q (D,), column vectors;
+    the root's is its transform in the skeleton's space."""
+    world = rig.kinematics().pose(np.asarray(q, dtype=np.float64)).world
+    parents = np.array([j.parent for j in rig.joints])
+    local = world.copy()
+    child = parents >= 0
+    local[child] = np.linalg.inv(world[parents[child]]) @ world[child]
+    return local
+
+
+def _rig_skeleton_info(rig: Rig, rig_file: Path):
+    """(root prim name, skeleton path, joint tokens, rig joint index per skeleton joint) read
+    from the rig file."""
+    from ..rig.usd_io import _find_skeleton, _open_stage
+
+    Gf, Sdf, Tf, Ts, Usd, UsdGeom, UsdSkel, Vt = _pxr()
+    src = str(rig_file)
+    stage = _open_stage(rig_file)
+    mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
+    up = str(UsdGeom.GetStageUpAxis(stage))
+    if abs(mpu - 1.0) > 1e-12 or up != "Z":
+        raise InputError(
+            f"the rig file is in metersPerUnit {mpu}, upAxis {up}; the result layer is metres and Z-up "
+            "(write the rig with write_rig_usd first)",
+            source=src,
+            element="metersPerUnit/upAxis",
+        )
+    skel = _find_skeleton(stage)
+    if skel is None:
+        raise InputError("no UsdSkel.Skeleton in the rig file", source=src, element="Skeleton")
+    tokens = [str(t) for t in (skel.GetJointsAttr().Get() or [])]
+    names_attr = skel.GetPrim().GetAttribute("handretarget:jointNames")
+    names = names_attr.Get() if names_attr and names_attr.HasAuthoredValue() else None
+    if names is None and skel.GetJointNamesAttr().HasAuthoredValue():
+        names = skel.GetJointNamesAttr().Get()
+    names = [str(n) for n in names] if names is not None else [t.rsplit("/", 1)[-1] for t in tokens]
+    if len(names) != len(tokens) or len(tokens) != rig.n_joints:
+        raise InputError(
+            f"the rig file's skeleton has {len(tokens)} joints, the rig {rig.n_joints}",
+            source=src,
+            element=f"{skel.GetPath()}.joints",
+        )
+    try:
+        order = np.array([rig.joint_index(n) for n in names], dtype=np.int64)
+    except KeyError as exc:
+        raise InputError(f"the rig file does not match the rig: {exc}", source=src, element="joints") from exc
+    path = skel.GetPath()
+    root = path.GetParentPath()
+    while root.pathElementCount > 1:
+        root = root.GetParentPath()
+    return root.name, str(path), tokens, order
+
+
+def _check_curves(rig: Rig, dof_curves, fps: float, n_frames: int):
+    if not np.isfinite(fps) or fps <= 0:
+        raise InputError(f"fps must be positive, got {fps}", element="fps")
+    if int(n_frames) != n_frames or n_frames < 1:
+        raise InputError(f"n_frames must be a positive integer, got {n_frames}", element="n_frames")
+    if len(dof_curves) != rig.n_dofs:
+        raise InputError(f"{len(dof_curves)} DOF curves for a rig with {rig.n_dofs} DOFs", element="dof_curves")
+    for i, c in enumerate(dof_curves):
+        if not isinstance(c, BSplineCurve):
+            raise InputError(f"curve {i} is a {type(c).__name__}, not a BSplineCurve", element="dof_curves")
+        if c.degree > 3:
+            raise InputError(f"curve of DOF {rig.dofs[i].name!r} has degree {c.degree} > 3", element="dof_curves")
+
+
+def _set_time_metadata(stage, fps: float, n_frames: int):
+    Gf, Sdf, Tf, Ts, Usd, UsdGeom, UsdSkel, Vt = _pxr()
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    stage.SetTimeCodesPerSecond(float(fps))
+    stage.SetFramesPerSecond(float(fps))
+    stage.SetStartTimeCode(0.0)
+    stage.SetEndTimeCode(float(n_frames - 1))
+
+
+# ---- USD -------------------------------------------------------------------------------------
+def write_animation_usd(
+    path,
+    *,
+    rig: Rig,
+    rig_file: str | None,
+    dof_curves: list[BSplineCurve],
+    fps: float,
+    n_frames: int,
+    object_vertices=None,
+    object_faces=None,
+    object_poses=None,
+    metadata: dict | None = None,
+) -> None:
+    """Write the result layer (.usda / .usdc / .usd) atomically; see the module docstring.
+
+    rig_file: the rig's USD file (written by ``write_rig_usd``), sublayered by a path relative
+    to the output folder; None writes the rig itself into the layer. dof_curves: one curve per
+    rig DOF (seconds). object_vertices (V, 3) metres in the object's frame, object_faces
+    (F, 3), object_poses (n_frames, 4, 4) object-to-world per frame. metadata: JSON-able dict
+    stored in the layer's customLayerData (``handretarget:metadata``, as JSON)."""
+    Gf, Sdf, Tf, Ts, Usd, UsdGeom, UsdSkel, Vt = _pxr()
+    path = Path(path)
+    ext = path.suffix.lower()
+    if ext not in _USD_EXTENSIONS:
+        raise InputError(f"USD file name must end in {', '.join(_USD_EXTENSIONS)}", source=str(path))
+    fps = float(fps)
+    _check_curves(rig, dof_curves, fps, n_frames)
+    n_frames = int(n_frames)
+    try:
+        metadata_json = json.dumps(metadata or {}, default=_json_default, sort_keys=True)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"metadata is not JSON serialisable: {exc}", element="metadata") from exc
+
+    # the scene graph: either the rig is sublayered, or written into this layer
+    if rig_file is not None:
+        rig_path = Path(rig_file)
+        root_name, skel_path, tokens, order = _rig_skeleton_info(rig, rig_path)
+        stage = Usd.Stage.CreateInMemory()
+        out_dir = path.resolve().parent
+        sublayer = os.path.relpath(rig_path.resolve(), out_dir).replace(os.sep, "/")
+        skel_prim = stage.OverridePrim(skel_path)
+        root_prim = stage.GetPrimAtPath(f"/{root_name}")
+        stage.SetDefaultPrim(root_prim)
+    else:
+        from ..rig.usd_io import _build_stage
+
+        stage = _build_stage(rig)
+        root_prim = stage.GetDefaultPrim()
+        root_name = root_prim.GetName()
+        skel = UsdSkel.Skeleton(stage.GetPrimAtPath(f"/{root_name}/Skeleton"))
+        skel_prim = skel.GetPrim()
+        tokens = [str(t) for t in skel.GetJointsAttr().Get()]
+        order = np.arange(rig.n_joints)
+        sublayer = None
+    _set_time_metadata(stage, fps, n_frames)
+    layer = stage.GetRootLayer()
+    layer.customLayerData = {
+        "handretarget:format": FORMAT_NAME,
+        "handretarget:formatVersion": FORMAT_VERSION,
+        "handretarget:metadata": metadata_json,
+    }
+
+    # baked skeletal animation
+    anim_path = f"/{root_name}/Animation"
+    anim = UsdSkel.Animation.Define(stage, anim_path)
+    anim.CreateJointsAttr(Vt.TokenArray(tokens))
+    frame_times = np.arange(n_frames, dtype=np.float64) / fps
+    q = np.stack([np.asarray(c(frame_times), dtype=np.float64).reshape(n_frames) for c in dof_curves], axis=1) \
+        if dof_curves else np.zeros((n_frames, 0))
+    t_attr, r_attr, s_attr = anim.CreateTranslationsAttr(), anim.CreateRotationsAttr(), anim.CreateScalesAttr()
+    for f in range(n_frames):
+        local = local_joint_transforms(rig, q[f])[order]
+        mats = Vt.Matrix4dArray.FromNumpy(np.ascontiguousarray(local.transpose(0, 2, 1)))
+        translations, rotations, scales = UsdSkel.DecomposeTransforms(mats)
+        code = Usd.TimeCode(float(f))
+        t_attr.Set(translations, code)
+        r_attr.Set(rotations, code)
+        s_attr.Set(scales, code)
+    binding = UsdSkel.BindingAPI.Apply(skel_prim)
+    binding.CreateAnimationSourceRel().SetTargets([Sdf.Path(anim_path)])
+
+    # one native spline per DOF
+    curves_prim = stage.DefinePrim(f"/{root_name}/DofCurves", "Scope")
+    attr_names = _unique_tokens(rig.dof_names, Tf.MakeValidIdentifier, prefix=DOF_PREFIX)
+    for dof, name, curve in zip(rig.dofs, attr_names, dof_curves):
+        attr = curves_prim.CreateAttribute(name, Sdf.ValueTypeNames.Double, custom=True)
+        attr.SetSpline(bspline_to_ts(curve, fps))
+        attr.SetDocumentation(
+            f"DOF {dof.name!r} ({'radians' if dof.kind == 'rotate' else 'metres'}) over time codes; "
+            "a cubic B-spline in seconds (seconds = time code / fps), see customData"
+        )
+        attr.SetCustomDataByKey(CUSTOM_KEY, {
+            "dofName": dof.name,
+            "kind": dof.kind,
+            "knots": Vt.DoubleArray([float(v) for v in curve.knots]),
+            "coefficients": Vt.DoubleArray([float(v) for v in curve.coeffs]),
+            "degree": int(curve.degree),
+            "timeUnit": "seconds",
+            "fps": fps,
+            "extrapolation": curve.extrapolation,
+        })
+
+    if object_vertices is not None or object_faces is not None or object_poses is not None:
+        _write_object(stage, object_vertices, object_faces, object_poses, n_frames)
+
+    if sublayer is not None:
+        layer.subLayerPaths.append(sublayer)
+    with atomic_path(path, suffix=ext) as tmp:
+        if not layer.Export(str(tmp)):
+            raise OSError(f"USD could not write {path}")
+
+
+def _write_object(stage, vertices, faces, poses, n_frames: int):
+    Gf, Sdf, Tf, Ts, Usd, UsdGeom, UsdSkel, Vt = _pxr()
+    if vertices is None or faces is None or poses is None:
+        raise InputError("the object needs vertices, faces and poses together", element="object")
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces)
+    poses = np.asarray(poses, dtype=np.float64)
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0 or not np.all(np.isfinite(v)):
+        raise InputError(f"object vertices must be finite with shape (V, 3), got {v.shape}", element="object_vertices")
+    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0 or not np.issubdtype(f.dtype, np.integer) \
+            or f.min() < 0 or f.max() >= len(v):
+        raise InputError(f"object faces must be (F, 3) indices into {len(v)} vertices", element="object_faces")
+    if poses.shape != (n_frames, 4, 4) or not np.all(np.isfinite(poses)):
+        raise InputError(f"object poses must be finite with shape ({n_frames}, 4, 4), got {poses.shape}",
+                         element="object_poses")
+    xform = UsdGeom.Xform.Define(stage, "/Object")
+    op = xform.AddTransformOp()
+    for k in range(n_frames):
+        op.Set(Gf.Matrix4d(poses[k].T.tolist()), Usd.TimeCode(float(k)))
+    mesh = UsdGeom.Mesh.Define(stage, "/Object/Mesh")
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(v, dtype=np.float32)))
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(f), 3, dtype=np.int32)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(f.reshape(-1), dtype=np.int32)))
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
+
+
+def read_dof_splines(path) -> dict:
+    """{DOF name: Ts.Spline} of every ``dof:*`` attribute carrying a spline in the layer at
+    ``path`` (time in time codes). The DOF name is the one in customData where present."""
+    Gf, Sdf, Tf, Ts, Usd, UsdGeom, UsdSkel, Vt = _pxr()
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("file not found", source=str(path))
+    stage = Usd.Stage.Open(str(path))
+    if stage is None:
+        raise InputError("not a readable USD file", source=str(path))
+    out = {}
+    for prim in stage.Traverse():
+        for attr in prim.GetAttributes():
+            name = attr.GetName()
+            if not name.startswith(DOF_PREFIX) or not attr.HasSpline():
+                continue
+            info = attr.GetCustomDataByKey(CUSTOM_KEY) or {}
+            out[str(info.get("dofName", name[len(DOF_PREFIX):]))] = attr.GetSpline()
+    return out
+
+
+def read_dof_bsplines(path) -> dict:
+    """{DOF name: BSplineCurve} rebuilt from the raw knots and coefficients in customData."""
+    Gf, Sdf, Tf, Ts, Usd, UsdGeom, UsdSkel, Vt = _pxr()
+    stage = Usd.Stage.Open(str(path))
+    if stage is None:
+        raise InputError("not a readable USD file", source=str(path))
+    out = {}
+    for prim in stage.Traverse():
+        for attr in prim.GetAttributes():
+            info = attr.GetCustomDataByKey(CUSTOM_KEY) if attr.GetName().startswith(DOF_PREFIX) else None
+            if not info or "knots" not in info:
+                continue
+            out[str(info.get("dofName", attr.GetName()[len(DOF_PREFIX):]))] = BSplineCurve(
+                knots=np.array(info["knots"], dtype=np.float64),
+                coeffs=np.array(info["coefficients"], dtype=np.float64),
+                degree=int(info.get("degree", 3)),
+                extrapolation=str(info.get("extrapolation", "held")),
+            )
+    return out
+
+
+# ---- JSON ------------------------------------------------------------------------------------
+def write_animation_json(path, dof_names, times, values, extra: dict | None = None) -> None:
+    """Per-frame DOF values for robot users, atomically::
+
+        {"format": "handretarget.animation", "version": 1, "dof_names": [...D],
+         "times": [...F seconds], "values": [[...D] x F], "extra": {...}}
+
+    times: (F,); values: (F, D) radians / metres."""
+    dof_names = [str(n) for n in dof_names]
+    times = np.asarray(times, dtype=np.float64).reshape(-1)
+    values = np.asarray(values, dtype=np.float64)
+    if values.shape != (len(times), len(dof_names)):
+        raise InputError(f"values must have shape ({len(times)}, {len(dof_names)}), got {values.shape}",
+                         element="values")
+    if not np.all(np.isfinite(values)) or not np.all(np.isfinite(times)):
+        raise InputError("times and values must be finite", element="values")
+    doc = {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "dof_names": dof_names,
+        "times": times.tolist(),
+        "values": values.tolist(),
+        "extra": extra or {},
+    }
+    try:
+        text = json.dumps(doc, default=_json_default, indent=1)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"extra is not JSON serialisable: {exc}", element="extra") from exc
+    path = Path(path)
+    with atomic_path(path, suffix=".json.tmp") as tmp:
+        tmp.write_text(text, encoding="utf-8")
+
+
+def read_animation_json(path) -> dict:
+    """The document written by :func:`write_animation_json`, with ``times`` (F,) and
+    ``values`` (F, D) as numpy arrays."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise InputError(f"not a readable JSON file: {exc}", source=str(path)) from exc
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT_NAME:
+        raise InputError(f"not a {FORMAT_NAME} document", source=str(path), element="format")
+    if doc.get("version") != FORMAT_VERSION:
+        raise InputError(f"unsupported version {doc.get('version')!r}", source=str(path), element="version")
+    doc["times"] = np.asarray(doc.get("times", []), dtype=np.float64)
+    doc["values"] = np.asarray(doc.get("values", []), dtype=np.float64).reshape(len(doc["times"]), -1)
+    return doc

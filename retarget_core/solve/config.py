@@ -1,0 +1,499 @@
+"""Run configuration: everything that describes one retargeting run, in one dataclass.
+
+:class:`RetargetConfig` groups the settings of the pipeline stages of the paper's appendix
+"Motion Retargeting Details" / "Parameter Values":
+
+- :class:`Weights`        the objective's lambda coefficients (paper table "Optimization
+                          weighting coefficients": all 1.0 except lambda_j = 50) plus the
+                          optional hand-object penetration weight lambda_p (0 = off).
+- :class:`SolverSettings` the per-frame optimiser (nlopt LD_MMA, 100 evaluations,
+                          xtol_rel 1e-4 in the paper's code).
+- :class:`Refinement`     the acceleration threshold E_acc (500 deg/s^2 and 500 cm/s^2), the
+                          iteration cap (20) and the low-pass / peak-removal filtering pass.
+- :class:`Fit`            the cubic B-spline fit: a fixed control-point count or a rate.
+- :class:`Passes`         which stages run.
+- :class:`Sampling`       vertex sub-sampling for the table and penetration terms.
+
+User-facing units follow the paper: angles in degrees, lengths in centimetres; every such
+field has an SI property (``*_si``) or helper returning radians / metres, which is what the
+core uses internally.
+
+Configurations are built from a preset (:meth:`RetargetConfig.preset`) with an optional TOML
+file and an optional override dict applied on top (:func:`load_config`). The TOML tables and
+keys mirror the dataclasses::
+
+    workers = 4
+
+    [weights]
+    lambda_j = 50.0
+
+    [solver]
+    maxeval = 60
+
+    [refinement]
+    e_acc_angular = 500.0   # deg/s^2
+
+    [fit]
+    control_points = 60     # replaces the preset's control_points_per_second
+
+Unknown keys, wrong types and out-of-range values raise :class:`~retarget_core.errors.InputError`
+whose ``element`` is the dotted key path (``"solver.maxevals: unknown key"``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from retarget_core.errors import InputError
+
+__all__ = [
+    "GRADIENT_MODES",
+    "PRESETS",
+    "SUPPORTED_ALGORITHMS",
+    "Fit",
+    "Passes",
+    "Refinement",
+    "RetargetConfig",
+    "Sampling",
+    "SolverSettings",
+    "Weights",
+    "load_config",
+    "n_control_points",
+]
+
+#: Optimiser names accepted in ``solver.algorithm`` (nlopt spelling; gradient-based only).
+SUPPORTED_ALGORITHMS = ("LD_MMA", "LD_CCSAQ", "LD_SLSQP", "LD_LBFGS")
+#: ``solver.gradient`` values: ``"analytic"`` (the core's Jacobians) or ``"forward"`` (forward
+#: differences with ``fd_step``, one skinning pass per DOF; kept only to measure the speed-up).
+GRADIENT_MODES = ("analytic", "forward")
+
+#: Smallest control-point count of a cubic B-spline.
+MIN_CONTROL_POINTS = 4
+
+
+@dataclass
+class Weights:
+    """Objective weights (paper table "Optimization weighting coefficients")."""
+
+    lambda_m: float = 1.0   # marker alignment
+    lambda_cd: float = 1.0  # contact distance
+    lambda_cn: float = 1.0  # contact normal (1 + n_obj . n_hand)
+    lambda_c: float = 1.0   # contact term (scales lambda_cd and lambda_cn)
+    lambda_t: float = 1.0   # table
+    lambda_j: float = 50.0  # joint prior (L1 deviation of non-root DOFs)
+    lambda_p: float = 0.0   # optional hand-object penetration term; 0 = off (not in the paper)
+
+
+@dataclass
+class SolverSettings:
+    """Per-frame optimiser. ``maxeval`` bounds objective evaluations per frame in the full
+    pass, ``root_maxeval`` per frame in the root-only pass. ``ftol_rel = 0`` disables the
+    relative-objective stop (nlopt convention). ``fd_step`` is only used with
+    ``gradient = "forward"``."""
+
+    algorithm: str = "LD_MMA"
+    maxeval: int = 100
+    root_maxeval: int = 100
+    xtol_rel: float = 1e-4
+    ftol_rel: float = 0.0
+    gradient: str = "analytic"
+    fd_step: float = 1e-3
+
+
+@dataclass
+class Refinement:
+    """Trajectory refinement (paper "Trajectory Refinement").
+
+    ``e_acc_angular`` (deg/s^2) and ``e_acc_linear`` (cm/s^2) are compared with
+    ``|(q[f+1]-q[f]) - (q[f]-q[f-1])| / dt`` — divided by ``dt`` once, as in the paper's code
+    (see :func:`retarget_core.refine.acceleration_violations`). ``max_iterations`` caps the
+    violation / re-solve loop.
+
+    The filtering pass (run before refinement) removes peaks — samples deviating from a running
+    median over ``peak_window`` frames by more than ``peak_threshold_angular`` (deg) /
+    ``peak_threshold_linear`` (cm) — then applies a zero-phase Butterworth low-pass of order
+    ``lowpass_order`` at ``lowpass_cutoff_hz``. Frames the filter moved by more than
+    ``resolve_tolerance_angular`` (deg) / ``resolve_tolerance_linear`` (cm) in some DOF are
+    re-solved (0 = every frame the filter moved). The paper gives no values for the filter;
+    these defaults are the project's choice."""
+
+    e_acc_angular: float = 500.0
+    e_acc_linear: float = 500.0
+    max_iterations: int = 20
+    lowpass_cutoff_hz: float = 10.0
+    lowpass_order: int = 4
+    peak_threshold_angular: float = 10.0
+    peak_threshold_linear: float = 2.0
+    peak_window: int = 7
+    resolve_tolerance_angular: float = 0.0
+    resolve_tolerance_linear: float = 0.0
+
+    @property
+    def e_acc_angular_si(self) -> float:
+        """E_acc for rotational DOFs in rad/s^2."""
+        return math.radians(self.e_acc_angular)
+
+    @property
+    def e_acc_linear_si(self) -> float:
+        """E_acc for translational DOFs in m/s^2."""
+        return self.e_acc_linear / 100.0
+
+    @property
+    def peak_threshold_angular_si(self) -> float:
+        return math.radians(self.peak_threshold_angular)
+
+    @property
+    def peak_threshold_linear_si(self) -> float:
+        return self.peak_threshold_linear / 100.0
+
+    def peak_thresholds(self, is_rotation) -> np.ndarray:
+        """Per-DOF peak threshold in SI (rad for rotations, m otherwise), shape (D,)."""
+        rot = np.asarray(is_rotation, dtype=bool)
+        return np.where(rot, self.peak_threshold_angular_si, self.peak_threshold_linear_si)
+
+    def resolve_tolerances(self, is_rotation) -> np.ndarray:
+        """Per-DOF filter change tolerance in SI (rad / m), shape (D,)."""
+        rot = np.asarray(is_rotation, dtype=bool)
+        return np.where(rot, math.radians(self.resolve_tolerance_angular),
+                        self.resolve_tolerance_linear / 100.0)
+
+
+@dataclass
+class Fit:
+    """Spline fit (paper "Spline Fitting"): one cubic B-spline per DOF with the same number of
+    control points for every DOF. Give exactly one of ``control_points`` (a fixed count) or
+    ``control_points_per_second`` (scaled with the clip's duration). ``optimize_knots = False``
+    uses clamped uniform knots (the paper's code); ``True`` also solves for knot locations
+    (the paper's text)."""
+
+    control_points: int | None = None
+    control_points_per_second: float | None = 10.0
+    optimize_knots: bool = False
+
+    def n_control_points(self, n_frames: int, fps: float) -> int:
+        """Control points for a clip of ``n_frames`` at ``fps``: the fixed count, or
+        ``round(rate * n_frames / fps)``; clamped to ``[4, n_frames]`` (at least a cubic
+        segment, never more unknowns than samples; fewer than 4 frames gives ``n_frames``)."""
+        if int(n_frames) != n_frames or n_frames < 1:
+            raise InputError(f"n_frames must be a positive integer, got {n_frames!r}",
+                             element="n_frames")
+        if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
+            raise InputError(f"fps must be positive, got {fps!r}", element="fps")
+        n_frames = int(n_frames)
+        if self.control_points is not None:
+            n = int(self.control_points)
+        else:
+            n = int(round(float(self.control_points_per_second) * n_frames / float(fps)))
+        return min(max(n, MIN_CONTROL_POINTS), n_frames)
+
+
+@dataclass
+class Passes:
+    """Which pipeline stages run: root-only pass, full-pose pass, filtering pass, acceleration
+    refinement, spline fit."""
+
+    root: bool = True
+    full: bool = True
+    filter: bool = True
+    refine: bool = True
+    fit: bool = True
+
+
+@dataclass
+class Sampling:
+    """Vertex sub-sampling for the per-frame terms: the table term and the penetration term use
+    every ``table_sample_stride``-th / ``penetration_sample_stride``-th hand vertex
+    (1 = all vertices)."""
+
+    table_sample_stride: int = 1
+    penetration_sample_stride: int = 1
+
+
+def _default_workers() -> int:
+    return os.cpu_count() or 1
+
+
+@dataclass
+class RetargetConfig:
+    """Settings of one retargeting run. Build one with :meth:`preset` or :func:`load_config`.
+
+    Presets (see :data:`PRESETS`):
+
+    ``"paper"``
+        The paper's settings: weights from its table (lambda_j = 50, others 1, no
+        penetration term), LD_MMA with 100 evaluations per frame in both passes,
+        xtol_rel 1e-4, E_acc 500 deg/s^2 and 500 cm/s^2, 20 refinement iterations, clamped
+        uniform knots, and 10 control points per second (the paper's table averages ~10/s at
+        120 fps, e.g. 60 for the 703-frame apple clip). The paper's code used forward
+        differences only because it had no analytic gradients; the gradient mode does not
+        change the optimum, so ``gradient`` stays ``"analytic"`` in every preset
+        (``"forward"`` exists only to measure the speed-up).
+    ``"default"``
+        The project's choice: the paper's settings, except the root-only pass is limited to
+        50 evaluations per frame (6 DOFs, seeded from the previous frame's root, it converges
+        well within that).
+    """
+
+    weights: Weights = field(default_factory=Weights)
+    solver: SolverSettings = field(default_factory=SolverSettings)
+    refinement: Refinement = field(default_factory=Refinement)
+    fit: Fit = field(default_factory=Fit)
+    passes: Passes = field(default_factory=Passes)
+    sampling: Sampling = field(default_factory=Sampling)
+    workers: int = field(default_factory=_default_workers)
+
+    @classmethod
+    def preset(cls, name: str = "default") -> "RetargetConfig":
+        """A fresh configuration for preset ``name`` (``"paper"`` or ``"default"``)."""
+        try:
+            make = _PRESET_BUILDERS[name]
+        except (KeyError, TypeError):
+            raise InputError(f"unknown preset {name!r} (expected one of {', '.join(PRESETS)})",
+                             element="preset") from None
+        cfg = make()
+        cfg.validate()
+        return cfg
+
+    def n_control_points(self, n_frames: int, fps: float) -> int:
+        """See :meth:`Fit.n_control_points`."""
+        return self.fit.n_control_points(n_frames, fps)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain nested dict (TOML/JSON friendly except ``None`` for the unused control-point
+        option), for reports."""
+        return dataclasses.asdict(self)
+
+    def validate(self, source: str | None = None) -> None:
+        """Raise :class:`InputError` (``element`` = dotted key, ``source`` as given) on a wrong
+        type or out-of-range value."""
+        _check_types(self, "", source)
+
+        def fail(msg: str, key: str):
+            raise InputError(msg, source=source, element=key)
+
+        def positive(v, key: str) -> None:
+            if not math.isfinite(v) or v <= 0:
+                fail(f"must be positive, got {v!r}", key)
+
+        def non_negative(v, key: str) -> None:
+            if not math.isfinite(v) or v < 0:
+                fail(f"must be non-negative, got {v!r}", key)
+
+        for f in dataclasses.fields(self.weights):
+            non_negative(getattr(self.weights, f.name), f"weights.{f.name}")
+        s = self.solver
+        if s.algorithm not in SUPPORTED_ALGORITHMS:
+            fail(f"unsupported algorithm {s.algorithm!r} (expected one of "
+                 f"{', '.join(SUPPORTED_ALGORITHMS)})", "solver.algorithm")
+        if s.gradient not in GRADIENT_MODES:
+            fail(f"must be one of {', '.join(GRADIENT_MODES)}, got {s.gradient!r}",
+                 "solver.gradient")
+        positive(s.maxeval, "solver.maxeval")
+        positive(s.root_maxeval, "solver.root_maxeval")
+        non_negative(s.xtol_rel, "solver.xtol_rel")
+        non_negative(s.ftol_rel, "solver.ftol_rel")
+        positive(s.fd_step, "solver.fd_step")
+        r = self.refinement
+        positive(r.e_acc_angular, "refinement.e_acc_angular")
+        positive(r.e_acc_linear, "refinement.e_acc_linear")
+        non_negative(r.max_iterations, "refinement.max_iterations")
+        positive(r.lowpass_cutoff_hz, "refinement.lowpass_cutoff_hz")
+        positive(r.lowpass_order, "refinement.lowpass_order")
+        positive(r.peak_threshold_angular, "refinement.peak_threshold_angular")
+        positive(r.peak_threshold_linear, "refinement.peak_threshold_linear")
+        if r.peak_window < 3 or r.peak_window % 2 == 0:
+            fail(f"must be an odd integer >= 3, got {r.peak_window!r}", "refinement.peak_window")
+        non_negative(r.resolve_tolerance_angular, "refinement.resolve_tolerance_angular")
+        non_negative(r.resolve_tolerance_linear, "refinement.resolve_tolerance_linear")
+        fit = self.fit
+        if (fit.control_points is None) == (fit.control_points_per_second is None):
+            fail("give exactly one of fit.control_points and fit.control_points_per_second",
+                 "fit")
+        if fit.control_points is not None and fit.control_points < MIN_CONTROL_POINTS:
+            fail(f"must be >= {MIN_CONTROL_POINTS}, got {fit.control_points!r}",
+                 "fit.control_points")
+        if fit.control_points_per_second is not None:
+            positive(fit.control_points_per_second, "fit.control_points_per_second")
+        positive(self.sampling.table_sample_stride, "sampling.table_sample_stride")
+        positive(self.sampling.penetration_sample_stride, "sampling.penetration_sample_stride")
+        positive(self.workers, "workers")
+
+
+# --------------------------------------------------------------------------------------------
+# presets
+
+
+def _paper() -> RetargetConfig:
+    return RetargetConfig(
+        weights=Weights(),
+        solver=SolverSettings(algorithm="LD_MMA", maxeval=100, root_maxeval=100,
+                              xtol_rel=1e-4, ftol_rel=0.0, gradient="analytic", fd_step=1e-3),
+        refinement=Refinement(e_acc_angular=500.0, e_acc_linear=500.0, max_iterations=20),
+        fit=Fit(control_points=None, control_points_per_second=10.0, optimize_knots=False),
+        passes=Passes(),
+        sampling=Sampling(),
+    )
+
+
+def _default() -> RetargetConfig:
+    cfg = _paper()
+    cfg.solver.root_maxeval = 50
+    cfg.sampling.table_sample_stride = 3  # a third of the hand's vertices feel the table
+    return cfg
+
+
+_PRESET_BUILDERS = {"paper": _paper, "default": _default}
+#: Preset names accepted by :meth:`RetargetConfig.preset` and :func:`load_config`.
+PRESETS = tuple(_PRESET_BUILDERS)
+
+
+def n_control_points(n_frames: int, fps: float, config: RetargetConfig | None = None) -> int:
+    """Control points for a clip under ``config`` (default preset when ``None``)."""
+    cfg = config if config is not None else RetargetConfig.preset("default")
+    return cfg.n_control_points(n_frames, fps)
+
+
+# --------------------------------------------------------------------------------------------
+# loading / overrides
+
+# Pairs of mutually exclusive fields: setting one in a layer clears the other.
+_EXCLUSIVE = {("fit", "control_points"): "control_points_per_second",
+              ("fit", "control_points_per_second"): "control_points"}
+
+
+def _type_name(tp) -> str:
+    if tp is float:
+        return "a number"
+    if tp is int:
+        return "an integer"
+    if tp is bool:
+        return "a boolean"
+    if tp is str:
+        return "a string"
+    return str(tp)
+
+
+def _coerce(value, tp, key: str, source: str | None):
+    """Check ``value`` against the annotation ``tp``; return it (ints widened to float)."""
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if value is None:
+            return None
+        return _coerce(value, args[0], key, source)
+    ok = False
+    if tp is bool:
+        ok = isinstance(value, bool)
+    elif tp is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif tp is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if ok:
+            value = float(value)
+    elif tp is str:
+        ok = isinstance(value, str)
+    if not ok:
+        raise InputError(f"expected {_type_name(tp)}, got {type(value).__name__} {value!r}",
+                         source=source, element=key)
+    return value
+
+
+def _check_types(obj, prefix: str, source: str | None = None) -> None:
+    hints = typing.get_type_hints(type(obj))
+    for f in dataclasses.fields(obj):
+        key = f"{prefix}{f.name}"
+        v = getattr(obj, f.name)
+        if dataclasses.is_dataclass(hints[f.name]):
+            _check_types(v, key + ".", source)
+        else:
+            _coerce(v, hints[f.name], key, source)
+
+
+def _expand_dotted(overrides: Mapping[str, Any]) -> dict[str, Any]:
+    """``{"solver.maxeval": 50}`` -> ``{"solver": {"maxeval": 50}}`` (nested dicts pass)."""
+    out: dict[str, Any] = {}
+    for k, v in overrides.items():
+        if not isinstance(k, str):
+            raise InputError(f"override keys must be strings, got {k!r}", element=str(k))
+        parts = k.split(".")
+        node = out
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+            if not isinstance(node, dict):
+                raise InputError("conflicting overrides", element=k)
+        if isinstance(v, Mapping):
+            v = _expand_dotted(v)
+            existing = node.setdefault(parts[-1], {})
+            if not isinstance(existing, dict):
+                raise InputError("conflicting overrides", element=k)
+            existing.update(v)
+        else:
+            node[parts[-1]] = v
+    return out
+
+
+def _apply(obj, data: Mapping[str, Any], prefix: str, source: str | None) -> None:
+    if not isinstance(data, Mapping):
+        raise InputError(f"expected a table, got {type(data).__name__}", source=source,
+                         element=prefix.rstrip(".") or "<root>")
+    hints = typing.get_type_hints(type(obj))
+    names = {f.name for f in dataclasses.fields(obj)}
+    section = prefix.rstrip(".")
+    for k, v in data.items():
+        key = f"{prefix}{k}"
+        if k not in names:
+            raise InputError("unknown key", source=source, element=key)
+        tp = hints[k]
+        if dataclasses.is_dataclass(tp):
+            _apply(getattr(obj, k), v, key + ".", source)
+            continue
+        if isinstance(v, Mapping):
+            raise InputError(f"expected {_type_name(tp)}, got a table", source=source,
+                             element=key)
+        setattr(obj, k, _coerce(v, tp, key, source))
+        other = _EXCLUSIVE.get((section, k))
+        if other is not None:
+            if other in data:
+                raise InputError(f"give only one of {section}.{k} and {section}.{other}",
+                                 source=source, element=key)
+            setattr(obj, other, None)
+
+
+def load_config(path: str | os.PathLike | None = None, preset: str = "default",
+                overrides: Mapping[str, Any] | None = None) -> RetargetConfig:
+    """Build a configuration: preset ``preset``, then the TOML file at ``path`` (if any), then
+    ``overrides`` (nested dicts mirroring the TOML tables, or dotted keys such as
+    ``{"solver.maxeval": 50}``). Setting ``fit.control_points`` in a layer clears the
+    preset's ``fit.control_points_per_second`` and vice versa. Raises :class:`InputError`
+    naming the file and dotted key on an unreadable file, unknown key, wrong type or
+    out-of-range value."""
+    cfg = RetargetConfig.preset(preset)
+    source = None
+    if path is not None:
+        source = str(path)
+        try:
+            with Path(path).open("rb") as fh:
+                data = tomllib.load(fh)
+        except FileNotFoundError:
+            raise InputError("configuration file not found", source=source) from None
+        except OSError as exc:
+            raise InputError(f"cannot read configuration file: {exc}", source=source) from None
+        except tomllib.TOMLDecodeError as exc:
+            raise InputError(f"invalid TOML: {exc}", source=source) from None
+        _apply(cfg, data, "", source)
+        cfg.validate(source)
+    if overrides:
+        _apply(cfg, _expand_dotted(overrides), "", "overrides")
+        cfg.validate("overrides")
+    return cfg
+

@@ -1,0 +1,107 @@
+"""What each frame's solve aims at: marker pairs (source marker positions of the frame, target
+marker points) and contact pairs (target-hand contact points, object points and normals).
+
+Built once per clip from the clip, its contact pairs, their transfer onto the target and the
+annotations; stored as flat arrays so frames can be sent to worker processes cheaply.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..clip.format import Clip
+from ..errors import InputError
+from ..mesh.surface_points import SurfacePoints
+from ..pairing.dense import ContactPairs
+from ..rig.model import Rig, vertex_normals
+from ..transfer.annotations import Annotations, resolve_points
+from ..transfer.atlas import TransferredContacts
+
+
+@dataclass
+class MarkerTargets:
+    """Marker pairs. target_faces (Mt,), target_barycentric (Mt, 3): every target marker point;
+    pair_target (Np,) index into them; pair_weight (Np,) (1/K for a marker of K pairs, so each
+    marker counts once); source_positions (T, Np, 3) metres: the source side of each pair per
+    frame; names (Np,) the marker of each pair."""
+
+    target_faces: np.ndarray
+    target_barycentric: np.ndarray
+    pair_target: np.ndarray
+    pair_weight: np.ndarray
+    source_positions: np.ndarray
+    names: list
+
+
+@dataclass
+class ContactTargets:
+    """Contact pairs of all frames, split by frame_offsets (T+1,): target_faces (N,),
+    target_barycentric (N, 3) on the target surface, object_points (N, 3) and object_normals
+    (N, 3) in world coordinates (metres, unit normals)."""
+
+    frame_offsets: np.ndarray
+    target_faces: np.ndarray
+    target_barycentric: np.ndarray
+    object_points: np.ndarray
+    object_normals: np.ndarray
+
+    def frame(self, f: int):
+        sl = slice(int(self.frame_offsets[f]), int(self.frame_offsets[f + 1]))
+        return (SurfacePoints(self.target_faces[sl], self.target_barycentric[sl]), self.object_points[sl],
+                self.object_normals[sl])
+
+    def count(self, f: int) -> int:
+        return int(self.frame_offsets[f + 1] - self.frame_offsets[f])
+
+
+def marker_targets(clip: Clip, source: Rig, target: Rig, annotations: Annotations) -> MarkerTargets:
+    """Marker pairs of every frame. The annotations' source side lives on the clip's hand mesh."""
+    if len(clip.hand_faces) != len(source.surface.faces) or not np.array_equal(clip.hand_faces, source.surface.faces):
+        raise InputError("the clip's hand mesh is not the source rig's surface", element="source rig")
+    t_faces, t_bary, s_faces, s_bary = [], [], [], []
+    pair_t, pair_s, weight, names = [], [], [], []
+    for marker in annotations.markers:
+        src = resolve_points(list(marker.source), source.surface.faces, source.surface.n_vertices,
+                             what=f"marker {marker.name!r} source")
+        tgt = resolve_points(list(marker.target), target.surface.faces, target.surface.n_vertices,
+                             what=f"marker {marker.name!r} target")
+        base_t, base_s = len(t_faces), len(s_faces)
+        t_faces += list(tgt.faces)
+        t_bary += list(tgt.barycentric)
+        s_faces += list(src.faces)
+        s_bary += list(src.barycentric)
+        pairs = marker.pairs()
+        for i, j in pairs:
+            pair_s.append(base_s + i)
+            pair_t.append(base_t + j)
+            weight.append(1.0 / len(pairs))
+            names.append(marker.name)
+    if not pair_t:
+        return MarkerTargets(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0),
+                             np.zeros((clip.n_frames, 0, 3)), [])
+    s_points = SurfacePoints(np.array(s_faces), np.array(s_bary))
+    corners = clip.hand_faces[s_points.faces]  # (Ms, 3)
+    src_pos = np.einsum("mk,tmkd->tmd", s_points.barycentric, clip.hand_vertices[:, corners].astype(np.float64))
+    return MarkerTargets(np.array(t_faces), np.array(t_bary), np.array(pair_t), np.array(weight),
+                         src_pos[:, np.array(pair_s)], names)
+
+
+def contact_targets(clip: Clip, pairs: ContactPairs, transferred: TransferredContacts) -> ContactTargets:
+    """Contact pairs of every frame: the transferred target point, the object point and the
+    object's outward normal there, in world coordinates. Dropped contacts are left out."""
+    normals = vertex_normals(clip.object_vertices, clip.object_faces)
+    keep = ~transferred.dropped
+    frame_of = np.repeat(np.arange(len(pairs.frame_offsets) - 1), np.diff(pairs.frame_offsets))
+    frame_of = frame_of[keep]
+    obj_corners = clip.object_faces[pairs.object_face[keep]]
+    local_p = np.einsum("nk,nkd->nd", pairs.object_barycentric[keep], clip.object_vertices[obj_corners])
+    local_n = np.einsum("nk,nkd->nd", pairs.object_barycentric[keep], normals[obj_corners])
+    rot = clip.object_poses[frame_of, :3, :3]
+    world_p = np.einsum("nab,nb->na", rot, local_p) + clip.object_poses[frame_of, :3, 3]
+    world_n = np.einsum("nab,nb->na", rot, local_n)
+    world_n /= np.linalg.norm(world_n, axis=1, keepdims=True)
+    offsets = np.zeros(clip.n_frames + 1, dtype=np.int64)
+    np.cumsum(np.bincount(frame_of, minlength=clip.n_frames), out=offsets[1:])
+    return ContactTargets(offsets, transferred.face[keep], transferred.barycentric[keep], world_p, world_n)
