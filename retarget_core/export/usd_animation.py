@@ -69,8 +69,7 @@ def bspline_to_ts(curve: BSplineCurve, fps: float):
     Gf, Sdf, Tf, Ts, Usd, UsdGeom, UsdSkel, Vt = _pxr()
     fps = float(fps)
     segments = curve.to_bezier()  # (t0, t1, p0, p1, p2, p3) in seconds
-    spline = Ts.Spline("double")
-    spline.SetCurveType(Ts.CurveTypeBezier)
+    spline = Ts.Spline("double")  # curve type Bezier is the default
     n = len(segments)
     for i in range(n + 1):
         prev = segments[i - 1] if i > 0 else None
@@ -299,7 +298,14 @@ def write_animation_usd(
         _write_object(stage, object_vertices, object_faces, object_poses, n_frames)
 
     if sublayer is not None:
-        layer.subLayerPaths.append(sublayer)
+        # DefinePrim() made the rig's root a typeless "def" here; the rig file defines it
+        layer.GetPrimAtPath(f"/{root_name}").specifier = Sdf.SpecifierOver
+        # a detached copy takes the relative sublayer path: on the live in-memory stage it
+        # would be resolved (and fail to load) relative to the working directory
+        detached = Sdf.Layer.CreateAnonymous(ext)
+        detached.TransferContent(layer)
+        detached.subLayerPaths.append(sublayer)
+        layer = detached
     with atomic_path(path, suffix=ext) as tmp:
         if not layer.Export(str(tmp)):
             raise OSError(f"USD could not write {path}")

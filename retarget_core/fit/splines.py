@@ -25,7 +25,7 @@ from ..errors import InputError
 EXTRAPOLATIONS = ("held", "linear")
 
 
-@dataclass
+@dataclass(eq=False)
 class BSplineCurve:
     """A scalar B-spline f(t), t in seconds.
 

@@ -9,6 +9,9 @@ import numpy as np
 
 from .objective import FrameObjective
 
+ROOT_TRANSLATION_WINDOW = 0.05  # metres around the seed
+ROOT_ROTATION_WINDOW = 0.6  # radians around the seed
+
 SUCCESS_CODES = (nlopt.SUCCESS, nlopt.STOPVAL_REACHED, nlopt.FTOL_REACHED, nlopt.XTOL_REACHED,
                  nlopt.MAXEVAL_REACHED, nlopt.MAXTIME_REACHED)
 
@@ -31,7 +34,8 @@ class FrameSolution:
 
 def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, upper: np.ndarray,
                 active: np.ndarray, *, maxeval: int, xtol_rel: float, ftol_rel: float = 0.0,
-                gradient: str = "analytic", fd_step: float = 1e-3) -> FrameSolution:
+                gradient: str = "analytic", fd_step: float = 1e-3, kinds=None, root_mask=None,
+                algorithm: str = "LD_MMA") -> FrameSolution:
     """Minimise the objective over the ``active`` DOFs (bool (D,)) within [lower, upper], from
     ``seed`` (D,). ``gradient = "forward"`` replaces the analytic gradient by forward
     differences (one extra evaluation per active DOF) — only to measure the speed-up."""
@@ -68,9 +72,20 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
             best["value"], best["q"] = value, q
         return float(value)
 
-    opt = nlopt.opt(nlopt.LD_MMA, n)
-    opt.set_lower_bounds(lower[active])
-    opt.set_upper_bounds(upper[active])
+    # MMA sizes its first moves from the bounds; the root's are metres and full turns wide, so
+    # confine the root to a neighbourhood of the seed (the root pass tracks it frame to frame)
+    # and give every DOF a sensible first step.
+    lo, hi = lower.copy(), upper.copy()
+    translate = np.array([k == "translate" for k in kinds]) if kinds is not None else np.zeros(len(lower), bool)
+    root = np.asarray(root_mask, bool) if root_mask is not None else np.zeros(len(lower), bool)
+    lo = np.where(root & translate, np.maximum(lo, base - ROOT_TRANSLATION_WINDOW), lo)
+    hi = np.where(root & translate, np.minimum(hi, base + ROOT_TRANSLATION_WINDOW), hi)
+    lo = np.where(root & ~translate, np.maximum(lo, base - ROOT_ROTATION_WINDOW), lo)
+    hi = np.where(root & ~translate, np.minimum(hi, base + ROOT_ROTATION_WINDOW), hi)
+    opt = nlopt.opt(getattr(nlopt, algorithm), n)
+    opt.set_lower_bounds(lo[active])
+    opt.set_upper_bounds(hi[active])
+    opt.set_initial_step(np.where(translate, 0.005, 0.05)[active])
     opt.set_min_objective(fun)
     opt.set_maxeval(int(maxeval))
     opt.set_xtol_rel(float(xtol_rel))

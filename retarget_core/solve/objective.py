@@ -28,7 +28,7 @@ from ..rig.model import Rig
 from .config import RetargetConfig
 
 MM = 1000.0
-PRIOR_EPS = 1e-3  # radians: smoothing of the L1 prior at zero
+PRIOR_EPS = 0.05  # radians: the L1 prior is smoothed (quadratic) within about 3 degrees of zero
 
 
 @dataclass

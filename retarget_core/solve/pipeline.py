@@ -86,7 +86,9 @@ def _solve_frames(frames, seeds, root_only: bool):
         objective.set_frame(problem.frame_data(int(f)))
         sol = solve_frame(objective, seed, lower, upper, active,
                           maxeval=cfg.root_maxeval if root_only else cfg.maxeval, xtol_rel=cfg.xtol_rel,
-                          ftol_rel=cfg.ftol_rel, gradient=cfg.gradient, fd_step=cfg.fd_step)
+                          ftol_rel=cfg.ftol_rel, gradient=cfg.gradient, fd_step=cfg.fd_step,
+                          kinds=[d.kind for d in rig.dofs], root_mask=[d.joint == 0 for d in rig.dofs],
+                          algorithm=cfg.algorithm)
         out.append((int(f), sol.q, sol.evaluations, sol.error))
     return out
 
