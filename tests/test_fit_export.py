@@ -5,7 +5,7 @@ import json
 
 import numpy as np
 import pytest
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel
+from pxr import Sdf, Usd, UsdGeom, UsdSkel
 from scipy.interpolate import BSpline
 
 from retarget_core.errors import InputError
