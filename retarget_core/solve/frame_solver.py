@@ -35,12 +35,15 @@ class FrameSolution:
 def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, upper: np.ndarray,
                 active: np.ndarray, *, maxeval: int, xtol_rel: float, ftol_rel: float = 0.0,
                 gradient: str = "analytic", fd_step: float = 1e-3, kinds=None, root_mask=None,
-                algorithm: str = "LD_MMA") -> FrameSolution:
+                algorithm: str = "LD_MMA", warm_start_iterations: int = 0) -> FrameSolution:
     """Minimise the objective over the ``active`` DOFs (bool (D,)) within [lower, upper], from
-    ``seed`` (D,). ``gradient = "forward"`` replaces the analytic gradient by forward
+    ``seed`` (D,), optionally after ``warm_start_iterations`` bounded Gauss-Newton steps
+    (:func:`gauss_newton_warm_start`). ``gradient = "forward"`` replaces the analytic gradient by forward
     differences (one extra evaluation per active DOF) — only to measure the speed-up."""
     active = np.asarray(active, dtype=bool)
     base = np.clip(np.asarray(seed, dtype=np.float64), lower, upper)
+    if warm_start_iterations > 0:
+        base = gauss_newton_warm_start(objective, base, lower, upper, active, warm_start_iterations)
     n = int(active.sum())
     best = {"value": np.inf, "q": base.copy()}
     start_evals = objective.evaluations
@@ -103,3 +106,49 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
         return FrameSolution(best["q"], best["value"], objective.evaluations - start_evals, nlopt.ROUNDOFF_LIMITED)
     except Exception as err:  # a failed frame is reported, never silently zero
         return FrameSolution(base, np.nan, objective.evaluations - start_evals, -1000, f"{type(err).__name__}: {err}")
+
+
+def gauss_newton_warm_start(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+                            active: np.ndarray, iterations: int) -> np.ndarray:
+    """Bounded Levenberg-Marquardt steps on the least-squares form of the objective
+    (:meth:`FrameObjective.residuals`), from ``seed`` (D,); at most ``iterations`` Jacobian
+    evaluations. MMA alone needs hundreds of evaluations to close a hand from rest onto a few
+    hundred contacts; this reaches the basin in about ten, then MMA polishes the whole
+    objective. DOFs at a bound whose step points outward are held for that step
+    (projected LM); normal equations are (A, A) with A the active DOF count, so no large
+    factorisation is ever formed."""
+    active_idx = np.nonzero(active)[0]
+    q = np.clip(seed, lower, upper).copy()
+    r, jac = objective.residuals(q)
+    cost = float(r @ r)
+    mu = 1e-3
+    for _ in range(max(0, int(iterations) - 1)):
+        j = jac[:, active_idx]
+        g = j.T @ r
+        h = j.T @ j
+        x = q[active_idx]
+        lo, hi = lower[active_idx], upper[active_idx]
+        free = ~(((x <= lo) & (g > 0)) | ((x >= hi) & (g < 0)))
+        if not free.any():
+            break
+        hf = h[np.ix_(free, free)]
+        damp = mu * (np.diag(hf) + 1e-9 * max(1.0, float(np.diag(hf).max())))
+        try:
+            step = -np.linalg.solve(hf + np.diag(damp), g[free])
+        except np.linalg.LinAlgError:
+            break
+        trial = q.copy()
+        trial[active_idx[free]] = np.clip(x[free] + step, lo[free], hi[free])
+        r_new, jac_new = objective.residuals(trial)
+        cost_new = float(r_new @ r_new)
+        if np.isfinite(cost_new) and cost_new < cost:
+            converged = cost - cost_new < 1e-6 * cost
+            q, r, jac, cost = trial, r_new, jac_new, cost_new
+            mu = max(mu / 3.0, 1e-9)
+            if converged:
+                break
+        else:
+            mu *= 4.0
+            if mu > 1e8:
+                break
+    return q

@@ -153,6 +153,48 @@ class FrameObjective:
                 grad[self.prior_mask] += w.lambda_j * d / smooth
         return value, grad
 
+    def residuals(self, q: np.ndarray):
+        """Least-squares form of the smooth terms: r (M,) and dr/dq (M, D) with sum(r**2) equal
+        to the markers, contacts (distance and normal) and prior part of E(q). The table and
+        penetration hinges are left out (they are zero almost everywhere and MMA, which sees
+        the whole objective, settles them). Used by the Gauss-Newton warm start."""
+        self.evaluations += 1
+        w, kin, data = self.w, self.kin, self.frame
+        pose = kin.pose(q)
+        rows, jacs = [], []
+        if self.marker_binding is not None and w.lambda_m > 0 and len(self.pair_target):
+            x, jx = kin.points_jacobian(pose, self.marker_binding)
+            s = np.sqrt(w.lambda_m * self.pair_weight)[:, None] * MM
+            rows.append(((x[self.pair_target] - data.markers) * s).ravel())
+            jacs.append((jx[self.pair_target] * s[:, :, None]).reshape(-1, len(q)))
+        if self.contact_binding is not None and w.lambda_c > 0:
+            x, jx = kin.points_jacobian(pose, self.contact_binding)
+            s = np.sqrt(w.lambda_c * w.lambda_cd) * MM
+            rows.append(((x - data.object_points) * s).ravel())
+            jacs.append(jx.reshape(-1, len(q)) * s)
+            if w.lambda_cn > 0:
+                # r = sqrt(k (1 + c)); dr = k dc / (2 r), floored where the normals are opposite
+                n, jn = kin.normals_jacobian(pose, self.contact_binding)
+                k = w.lambda_c * w.lambda_cn
+                c = np.einsum("ij,ij->i", n, data.object_normals)
+                r = np.sqrt(np.maximum(k * (1.0 + c), 1e-12))
+                rows.append(r)
+                jacs.append(np.einsum("ijd,ij->id", jn, data.object_normals) * (k / (2 * r))[:, None])
+        if w.lambda_j > 0:
+            # signed r = sign(d) sqrt(lambda_j (smooth - eps)): smooth through d = 0
+            d = (q - self.reference)[self.prior_mask]
+            smooth = np.sqrt(d * d + PRIOR_EPS * PRIOR_EPS)
+            r = np.sign(d) * np.sqrt(w.lambda_j * (smooth - PRIOR_EPS))
+            slope = np.where(np.abs(r) > 1e-9, w.lambda_j * np.abs(d) / smooth / (2 * np.abs(r) + 1e-300),
+                             np.sqrt(w.lambda_j / (2 * PRIOR_EPS)))
+            j = np.zeros((len(d), len(q)))
+            j[np.arange(len(d)), np.nonzero(self.prior_mask)[0]] = slope
+            rows.append(r)
+            jacs.append(j)
+        if not rows:
+            return np.zeros(0), np.zeros((0, len(q)))
+        return np.concatenate(rows), np.vstack(jacs)
+
     def _penetration(self, points, pose, value, cot):
         inv = np.linalg.inv(pose)
         local = points @ inv[:3, :3].T + inv[:3, 3]

@@ -88,7 +88,7 @@ def _solve_frames(frames, seeds, root_only: bool):
                           maxeval=cfg.root_maxeval if root_only else cfg.maxeval, xtol_rel=cfg.xtol_rel,
                           ftol_rel=cfg.ftol_rel, gradient=cfg.gradient, fd_step=cfg.fd_step,
                           kinds=[d.kind for d in rig.dofs], root_mask=[d.joint == 0 for d in rig.dofs],
-                          algorithm=cfg.algorithm)
+                          algorithm=cfg.algorithm, warm_start_iterations=cfg.warm_start_iterations)
         out.append((int(f), sol.q, sol.evaluations, sol.error))
     return out
 
@@ -171,7 +171,7 @@ def solve_trajectory(clip: Clip, source: Rig, target: Rig, annotations: Annotati
     t0 = time.perf_counter()
     transferred = transfer_clip(pairs, source, target, annotations)
     markers = marker_targets(clip, source, target, annotations)
-    contacts = contact_targets(clip, pairs, transferred.contacts)
+    contacts = contact_targets(clip, pairs, transferred.contacts, keep_source_gap=config.contacts.keep_source_gap)
     timings["transfer"] = time.perf_counter() - t0
     if len(markers.pair_target) < 3:
         raise InputError("at least three marker pairs are needed to place the hand", element="markers")

@@ -88,9 +88,15 @@ def marker_targets(clip: Clip, source: Rig, target: Rig, annotations: Annotation
                          src_pos[:, np.array(pair_s)], names)
 
 
-def contact_targets(clip: Clip, pairs: ContactPairs, transferred: TransferredContacts) -> ContactTargets:
+def contact_targets(clip: Clip, pairs: ContactPairs, transferred: TransferredContacts, *,
+                    keep_source_gap: bool = False) -> ContactTargets:
     """Contact pairs of every frame: the transferred target point, the object point and the
-    object's outward normal there, in world coordinates. Dropped contacts are left out."""
+    object's outward normal there, in world coordinates. Dropped contacts are left out.
+
+    ``keep_source_gap``: move each object point out along its normal by the source pair's
+    gap along that normal (never inward), so the target touches where the source hand was
+    rather than closing the millimetres a captured contact leaves open (a contact is "within
+    threshold", not "on the surface"). Off, the points are on the object (the paper)."""
     normals = vertex_normals(clip.object_vertices, clip.object_faces)
     keep = ~transferred.dropped
     frame_of = np.repeat(np.arange(len(pairs.frame_offsets) - 1), np.diff(pairs.frame_offsets))
@@ -102,6 +108,12 @@ def contact_targets(clip: Clip, pairs: ContactPairs, transferred: TransferredCon
     world_p = np.einsum("nab,nb->na", rot, local_p) + clip.object_poses[frame_of, :3, 3]
     world_n = np.einsum("nab,nb->na", rot, local_n)
     world_n /= np.linalg.norm(world_n, axis=1, keepdims=True)
+    if keep_source_gap:
+        hand_corners = clip.hand_faces[pairs.hand_face[keep]]
+        hand_p = np.einsum("nk,nkd->nd", pairs.hand_barycentric[keep],
+                           clip.hand_vertices[frame_of[:, None], hand_corners].astype(np.float64))
+        gap = np.maximum(np.einsum("nd,nd->n", hand_p - world_p, world_n), 0.0)
+        world_p = world_p + gap[:, None] * world_n
     offsets = np.zeros(clip.n_frames + 1, dtype=np.int64)
     np.cumsum(np.bincount(frame_of, minlength=clip.n_frames), out=offsets[1:])
     return ContactTargets(offsets, transferred.face[keep], transferred.barycentric[keep], world_p, world_n)
