@@ -101,6 +101,9 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
         value = float(opt.last_optimum_value())
         if best["value"] < value:  # MMA reports its last iterate; keep the best one seen
             q, value = best["q"], best["value"]
+        if not (np.isfinite(value) and np.all(np.isfinite(q))):
+            return FrameSolution(base, np.nan, objective.evaluations - start_evals, code,
+                                 "the objective is not finite (NaN in the frame's markers or contacts?)")
         return FrameSolution(q, value, objective.evaluations - start_evals, code)
     except nlopt.RoundoffLimited:  # not a RuntimeError: the best point so far is still good
         return FrameSolution(best["q"], best["value"], objective.evaluations - start_evals, nlopt.ROUNDOFF_LIMITED)
