@@ -47,7 +47,8 @@ def _cmd_rig_info(args) -> int:
 def _cmd_demo(args) -> int:
     """The README's main job: the demo hand library (USD), the demonstration clips, their
     dense contact pairing, a PNG strip of each clip, annotations from the source hand to every
-    demo hand and the contact transfer onto each (report and pictures). Later stages extend it."""
+    demo hand, the contact transfer onto each (report and pictures) and the retarget of one second
+    of a clip onto every demo hand (USD animation, result and joint JSON, summary table)."""
     out = Path(args.out)
     print(f"== demo hand library -> {out / 'rigs'}")
     _cmd_rig_demo(argparse.Namespace(out=out / "rigs", hand=None, resolution=args.resolution))
@@ -74,7 +75,54 @@ def _cmd_demo(args) -> int:
         print(f"-- {name}")
         _transfer_table(jobs, None, demo_hand(name, resolution=args.resolution),
                         load_annotations(out / "annotations" / f"{name}.json"), out / "transfer" / name, None)
+    print(f"\n== retarget one second of {RETARGET_DEMO_CLIP} onto every demo hand -> {out / 'retarget'}")
+    _retarget_demo(out, args.resolution, args.time_scale)
     return 0
+
+
+#: The demo's retarget stage: one second (RETARGET_DEMO_FRAMES at 120 fps) of this clip at its
+#: natural speed, from half a second before the first contact (reach, grasp, lift). A shortened
+#: clip (time_scale < 1) would move faster than the acceleration threshold E_acc allows.
+RETARGET_DEMO_CLIP = "bottle_pick_place"
+RETARGET_DEMO_FRAMES = 120
+
+
+def _retarget_demo(out: Path, resolution: float, time_scale: float) -> None:
+    """Retarget a short window of the demo clip onto every demo hand with the proposed
+    annotations (``out/annotations``) and the default preset; write ``out/retarget/<hand>/``
+    and a summary table (``out/retarget/summary.md``)."""
+    from .clip import load_clip
+    from .clip.demo import make_demo_clip, source_rig
+    from .pairing import pair_contacts
+    from .rig.demo_hands import DEMO_HANDS, demo_hand
+    from .solve.config import load_config
+    from .transfer.annotations import load_annotations
+
+    source = source_rig()
+    saved = out / "clips" / f"{RETARGET_DEMO_CLIP}.npz"
+    full = load_clip(saved) if time_scale == 1.0 and saved.is_file() else make_demo_clip(RETARGET_DEMO_CLIP, rig=source)
+    first = int(np.argmax((full.contact_labels > 0).any(axis=1)))
+    start = max(0, min(first - RETARGET_DEMO_FRAMES // 2, full.n_frames - RETARGET_DEMO_FRAMES))
+    clip = full.slice(start, start + RETARGET_DEMO_FRAMES)
+    clip_path = out / "retarget" / f"{RETARGET_DEMO_CLIP}_grasp.npz"
+    clip.save(clip_path)
+    print(f"clip {clip_path}: frames {start}-{start + clip.n_frames - 1} of {RETARGET_DEMO_CLIP}")
+    pairs = pair_contacts(clip)
+    config = load_config(None, "default")
+    rows = ["| hand | DOFs | frames | seconds | median contact distance (mm) | failed frames |",
+            "|---|---:|---:|---:|---:|---:|"]
+    for name in DEMO_HANDS:
+        print(f"-- {name}")
+        result, _ = _run_retarget(clip, source, demo_hand(name, resolution=resolution),
+                                  load_annotations(out / "annotations" / f"{name}.json"), config,
+                                  out / "retarget" / name, out / "rigs" / f"{name}.usda", pairs=pairs)
+        s = result.summary
+        rows.append(f"| {name} | {s['dofs']} | {s['frames']} | {s['seconds']:.1f} | "
+                    f"{_fmt_mm(s['contact_distance_median_mm'])} | {s['failed_frames']} |")
+    table = "\n".join(rows) + "\n"
+    (out / "retarget" / "summary.md").write_text(
+        f"# Retarget of {clip_path.name} ({clip.n_frames} frames at {clip.fps:g} fps), preset default\n\n" + table)
+    print("\n" + table + f"wrote {out / 'retarget' / 'summary.md'}")
 
 
 def _cmd_bench_kinematics(args) -> int:
@@ -336,6 +384,100 @@ def _cmd_transfer_demo(args) -> int:
     return 0
 
 
+class _ProgressBar:
+    """``progress(stage, done, total)`` printed on stderr: one line redrawn with \\r on a
+    terminal, otherwise a line when a stage starts and at most every ``every`` seconds."""
+
+    def __init__(self, stream=None, every: float = 10.0):
+        self.stream = stream or sys.stderr
+        self.tty = self.stream.isatty()
+        self.every, self.stage, self.last = every, None, 0.0
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        import time
+
+        now = time.monotonic()
+        new = stage != self.stage
+        if self.tty:
+            filled = int(24 * done / max(total, 1))
+            self.stream.write(("\n" if new and self.stage else "\r")
+                              + f"{stage:<16} [{'#' * filled}{'.' * (24 - filled)}] {done}/{total}".ljust(60))
+        elif new or now - self.last >= self.every:
+            self.stream.write(f"{stage}: {done}/{total}\n")
+            self.last = now
+        self.stage = stage
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.tty and self.stage:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def _parse_sets(items) -> dict:
+    """``["solver.maxeval=50", "fit.optimize_knots=true"]`` -> overrides; values are TOML values
+    (numbers, booleans, quoted strings), anything else is taken as a string."""
+    import tomllib
+
+    out = {}
+    for item in items or []:
+        key, eq, text = item.partition("=")
+        if not eq or not key.strip():
+            raise _usage(f"--set expects KEY=VALUE, got {item!r}")
+        try:
+            value = tomllib.loads(f"v = {text}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text
+        out[key.strip()] = value
+    return out
+
+
+def _run_retarget(clip, source, target, annotations, config, out, rig_path, pairs=None):
+    """Retarget with a progress bar on stderr and write the result files; (result, paths)."""
+    from .retarget import retarget
+
+    bar = _ProgressBar()
+    try:
+        result = retarget(clip, source, target, annotations, config, progress=bar, pairs=pairs)
+    finally:
+        bar.close()
+    return result, result.write(out, rig_path)
+
+
+def _fmt_mm(value) -> str:
+    return "-" if value is None else f"{value:.2f}"
+
+
+def _cmd_retarget(args) -> int:
+    from .clip import load_clip
+    from .clip.demo import source_rig
+    from .rig.io import resolve_rig
+    from .solve.config import load_config
+    from .transfer.annotations import load_annotations
+
+    overrides = _parse_sets(args.set)
+    if args.workers is not None:
+        overrides["workers"] = args.workers
+    config = load_config(args.config, args.preset, overrides)
+    clip = load_clip(args.clip)
+    target = resolve_rig(args.rig)
+    spec = args.source_rig or clip.source_rig
+    source = resolve_rig(spec) if spec else source_rig()
+    annotations = load_annotations(args.annotations)
+    rig_path = None if str(args.rig).startswith("demo:") else args.rig
+    result, paths = _run_retarget(clip, source, target, annotations, config, Path(args.out), rig_path)
+    s = result.summary
+    print(f"retargeted {args.clip} onto {target.name}: {s['frames']} frames, {s['dofs']} DOFs, "
+          f"{s['control_points'] or 'no'} control points per DOF")
+    print("  seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in result.timings.items()))
+    print(f"  median contact distance {_fmt_mm(s['contact_distance_median_mm'])} mm over {s['contact_frames']} "
+          f"contact frames; marker error {_fmt_mm(s['marker_error_median_mm'])} mm; failed frames "
+          f"{s['failed_frames']}; unresolved entries {s['unresolved_entries']}")
+    for path in paths.values():
+        print(f"wrote {path}")
+    return 0
+
+
 def _cmd_bench_transfer(args) -> int:
     from .benchmarks.transfer import run_transfer_benchmark
 
@@ -447,6 +589,19 @@ def build_parser() -> argparse.ArgumentParser:
     t_demo.add_argument("--resolution", type=float, default=0.004, help="target hands' mesh cell size (m)")
     t_demo.add_argument("--every", type=int, default=5, help="use every N-th frame")
     t_demo.set_defaults(func=_cmd_transfer_demo)
+
+    ret = sub.add_parser("retarget", help="retarget a clip onto a rig: USD animation, result JSON, joint JSON")
+    ret.add_argument("--clip", required=True, help="clip .npz")
+    ret.add_argument("--rig", required=True, help="target rig: a file or demo:NAME[@RESOLUTION]")
+    ret.add_argument("--annotations", required=True, help="annotation JSON (source hand -> this rig)")
+    ret.add_argument("--out", required=True, help="output folder")
+    ret.add_argument("--source-rig", help="source rig (default: the one the clip records, else the demo source hand)")
+    ret.add_argument("--preset", default="default", choices=["default", "paper"], help="configuration preset")
+    ret.add_argument("--config", help="TOML configuration applied over the preset")
+    ret.add_argument("--set", action="append", metavar="KEY=VALUE",
+                     help="configuration override, e.g. solver.maxeval=50 (repeatable)")
+    ret.add_argument("--workers", type=int, help="worker processes for the frame passes")
+    ret.set_defaults(func=_cmd_retarget)
 
     bench = sub.add_parser("bench", help="print performance figures")
     bench_sub = bench.add_subparsers(dest="bench_command", required=True)

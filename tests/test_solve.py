@@ -1,7 +1,5 @@
 """Per-frame objective, its analytic gradients, the frame solver and the identity retarget."""
 
-import copy
-
 import numpy as np
 import pytest
 

@@ -28,6 +28,7 @@ from ..rig.model import Rig
 from .config import RetargetConfig
 
 MM = 1000.0
+TABLE_MARGIN = 0.03  # metres: sample points farther above the table at the seed are skipped
 PRIOR_EPS = 0.05  # radians: the L1 prior is smoothed (quadratic) within about 3 degrees of zero
 
 
@@ -78,7 +79,9 @@ class FrameObjective:
         self.pair_weight = np.asarray(pair_weight, dtype=np.float64)
         stride = max(1, int(config.sampling.table_sample_stride))
         samples = np.arange(0, rig.surface.n_vertices, stride)
-        self.sample_binding = self.kin.bind(SurfacePoints.from_vertices(samples, rig.surface.faces))
+        self.sample_vertices = samples
+        self.all_samples = self.kin.bind(SurfacePoints.from_vertices(samples, rig.surface.faces))
+        self.sample_binding = self.all_samples
         self.table = None if table_pose is None else (np.asarray(table_pose, float), np.asarray(table_half_extents, float))
         self.prior_mask = np.array([d.joint != 0 for d in rig.dofs])
         self.reference = rig.rest_pose if reference is None else np.asarray(reference, float)
@@ -98,6 +101,30 @@ class FrameObjective:
     def set_frame(self, data: FrameData) -> None:
         self.frame = data
         self.contact_binding = self.kin.bind(data.contacts) if len(data.contacts) else None
+        self.sample_binding = self.all_samples
+
+    def focus_samples(self, q: np.ndarray, margin: float = TABLE_MARGIN) -> None:
+        """Let the table term see only the sample points within ``margin`` (m) of the table at
+        pose q (D,): most of a hand is far above the table, and skinning thousands of points per
+        evaluation for nothing dominates the cost. Exact as long as the far points stay out of
+        the table; :meth:`unseen_table_contact` checks that at the solution. A no-op when the
+        penetration term (which needs every sample) is on."""
+        if self.table is None or self.object_tree is not None:
+            return
+        s = self.kin.points(q, self.all_samples)
+        near = box_sdf(s, *self.table)[0] < margin
+        self.sample_binding = (self.kin.bind(SurfacePoints.from_vertices(self.sample_vertices[near], self.rig.surface.faces))
+                               if near.any() else None)
+
+    def unseen_table_contact(self, q: np.ndarray) -> bool:
+        """True when, at q (D,), a sample point left out by :meth:`focus_samples` is inside the
+        table (the focused objective then differs from the whole one)."""
+        if self.table is None or self.sample_binding is self.all_samples:
+            return False
+        inside_all = int((box_sdf(self.kin.points(q, self.all_samples), *self.table)[0] < 0).sum())
+        if inside_all == 0 or self.sample_binding is None:
+            return inside_all > 0
+        return inside_all > int((box_sdf(self.kin.points(q, self.sample_binding), *self.table)[0] < 0).sum())
 
     # ---- the terms -----------------------------------------------------------------------------
     def value_and_grad(self, q: np.ndarray, want_grad: bool = True):
@@ -131,7 +158,8 @@ class FrameObjective:
                     n = kin.normals(pose, self.contact_binding)
                 value += w.lambda_c * w.lambda_cn * float(np.sum(1.0 + np.einsum("ij,ij->i", n, data.object_normals)))
 
-        if (self.table is not None and w.lambda_t > 0) or self.object_tree is not None:
+        if self.sample_binding is not None and ((self.table is not None and w.lambda_t > 0)
+                                                or self.object_tree is not None):
             s = kin.points(pose, self.sample_binding)
             cot = np.zeros_like(s)
             if self.table is not None and w.lambda_t > 0:

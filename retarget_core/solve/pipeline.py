@@ -74,6 +74,18 @@ def _init_worker(problem: Problem) -> None:
     _WORKER["objective"] = problem.objective()
 
 
+def _solve_sequence(frames, seed):
+    """Root-only solves of consecutive ``frames``, each seeded from the previous solution (a
+    failed frame keeps its seed and passes it on)."""
+    out = []
+    for f in frames:
+        (_, q, evals, error), = _solve_frames([f], [seed], True)
+        if not error:
+            seed = q
+        out.append((int(f), seed, evals, error))
+    return out
+
+
 def _solve_frames(frames, seeds, root_only: bool):
     problem: Problem = _WORKER["problem"]
     objective: FrameObjective = _WORKER["objective"]
@@ -82,14 +94,24 @@ def _solve_frames(frames, seeds, root_only: bool):
     lower, upper = rig.lower, rig.upper
     active = np.array([d.joint == 0 for d in rig.dofs]) if root_only else np.ones(rig.n_dofs, dtype=bool)
     out = []
+    settings = dict(maxeval=cfg.root_maxeval if root_only else cfg.maxeval, xtol_rel=cfg.xtol_rel,
+                    ftol_rel=cfg.ftol_rel, gradient=cfg.gradient, fd_step=cfg.fd_step,
+                    kinds=[d.kind for d in rig.dofs], root_mask=[d.joint == 0 for d in rig.dofs],
+                    algorithm=cfg.algorithm)
     for f, seed in zip(frames, seeds):
         objective.set_frame(problem.frame_data(int(f)))
-        sol = solve_frame(objective, seed, lower, upper, active,
-                          maxeval=cfg.root_maxeval if root_only else cfg.maxeval, xtol_rel=cfg.xtol_rel,
-                          ftol_rel=cfg.ftol_rel, gradient=cfg.gradient, fd_step=cfg.fd_step,
-                          kinds=[d.kind for d in rig.dofs], root_mask=[d.joint == 0 for d in rig.dofs],
-                          algorithm=cfg.algorithm, warm_start_iterations=cfg.warm_start_iterations)
-        out.append((int(f), sol.q, sol.evaluations, sol.error))
+        objective.focus_samples(seed)
+        sol = solve_frame(objective, seed, lower, upper, active, warm_start_iterations=cfg.warm_start_iterations,
+                          **settings)
+        evaluations = sol.evaluations
+        if sol.ok and objective.unseen_table_contact(sol.q):
+            # a point that was far from the table at the seed ended inside it: polish with it
+            objective.focus_samples(sol.q)
+            polished = solve_frame(objective, sol.q, lower, upper, active, **settings)
+            evaluations += polished.evaluations
+            if polished.ok:
+                sol = polished
+        out.append((int(f), sol.q, evaluations, sol.error))
     return out
 
 
@@ -123,6 +145,26 @@ class FrameRunner:
                 done += len(part)
                 if progress:
                     progress(stage, done, len(frames))
+        return results
+
+    def solve_sequences(self, starts, seeds, n_frames: int, *, progress: Progress | None = None, stage: str = ""):
+        """Root-only pass over frames [starts[k], starts[k+1]) each, sequentially within a
+        sequence from seeds[k], sequences in parallel."""
+        bounds = list(starts) + [n_frames]
+        chunks = [(np.arange(bounds[k], bounds[k + 1]), seeds[k]) for k in range(len(starts))]
+        if self.pool is None:
+            results = []
+            for frames, seed in chunks:
+                results += _solve_sequence(frames, seed)
+                if progress:
+                    progress(stage, len(results), n_frames)
+            return results
+        futures = [self.pool.submit(_solve_sequence, frames, seed) for frames, seed in chunks]
+        results = []
+        for fut in futures:
+            results += fut.result()
+            if progress:
+                progress(stage, len(results), n_frames)
         return results
 
     def close(self):
@@ -183,27 +225,25 @@ def solve_trajectory(clip: Clip, source: Rig, target: Rig, annotations: Annotati
     reports = {}
     runner = FrameRunner(problem, config.workers)
     try:
-        # Root-only pass: each frame seeded from the previous one (the first from a rigid fit of
-        # the target markers at rest onto the source markers).
+        # Root-only pass: each frame seeded from the previous one, the first of each sequence
+        # from a rigid fit of the target markers at rest onto that frame's source markers. The
+        # clip is cut into one sequence per worker so the pass runs in parallel too.
         t0 = time.perf_counter()
         kin = target.kinematics()
         rest_markers = kin.points(rest, kin.bind(SurfacePoints(markers.target_faces, markers.target_barycentric)))
         root_now = kin.pose(rest).world[0]
-        fit = kabsch(rest_markers[markers.pair_target], markers.source_positions[0])
-        seed = set_root_transform(target, rest, fit @ root_now)
-        q_root = np.tile(rest, (n_frames, 1))
+        starts = np.unique(np.linspace(0, n_frames, runner.workers + 1).astype(int)[:-1])
+        seeds = [set_root_transform(target, rest, kabsch(rest_markers[markers.pair_target],
+                                                         markers.source_positions[s]) @ root_now) for s in starts]
+        q_root = np.array([seeds[np.searchsorted(starts, f, side="right") - 1] for f in range(n_frames)])
         report = PassReport(frames=n_frames)
         if config.passes.root:
-            for f in range(n_frames):
-                (_, q, evals, error), = _solve_frames_inline(problem, [f], [seed], True)
+            for f, q, evals, error in runner.solve_sequences(starts, seeds, n_frames, progress=progress,
+                                                             stage="root pass"):
                 report.evaluations += evals
                 if error:
                     report.failed.append((f, error))
-                else:
-                    seed = q
-                q_root[f] = seed
-                if progress and (f % 50 == 0 or f == n_frames - 1):
-                    progress("root pass", f + 1, n_frames)
+                q_root[f] = q
         report.seconds = time.perf_counter() - t0
         reports["root"] = report
         timings["root pass"] = report.seconds
@@ -254,12 +294,6 @@ def solve_trajectory(clip: Clip, source: Rig, target: Rig, annotations: Annotati
         runner.close()
     return Trajectory(q, unresolved, reports, timings, pairs, contacts, markers,
                       float(1 - transferred.contacts.dropped.mean()) if len(transferred.contacts.dropped) else 1.0)
-
-
-def _solve_frames_inline(problem: Problem, frames, seeds, root_only: bool):
-    if _WORKER.get("problem") is not problem:
-        _init_worker(problem)
-    return _solve_frames(frames, seeds, root_only)
 
 
 def _pass(runner: FrameRunner, frames, seeds, progress, stage):

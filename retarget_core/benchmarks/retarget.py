@@ -1,0 +1,157 @@
+"""Whole-pipeline benchmark (issue budgets of DESIGN.md): a ~1000-frame demo clip onto a 54-DOF
+hand, wall time per stage on the configured workers, peak memory of the process tree, and the
+per-frame speed-up of analytic over forward-difference gradients on the same frames."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..clip.demo import SOURCE_RESOLUTION, build_demo_timeline, clip_from_timeline, source_rig
+from ..pairing.dense import pair_contacts
+from ..rig.demo_hands import demo_hand
+from ..solve.config import RetargetConfig
+from ..solve.frame_solver import solve_frame
+from ..solve.pipeline import Problem
+from ..solve.targets import contact_targets, marker_targets
+from ..transfer.clip_transfer import transfer_clip
+from ..transfer.propose import propose_annotations
+
+
+def _memory_bytes(pid: int) -> int:
+    """Proportional set size of a process (bytes): pages shared with forked workers are
+    counted once across them, unlike RSS."""
+    try:
+        with open(f"/proc/{pid}/smaps_rollup") as fh:
+            for line in fh:
+                if line.startswith("Pss:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+def _tree_memory_bytes(root: int) -> int:
+    """Memory (PSS, bytes) of ``root`` and all its descendants (Linux /proc)."""
+    children: dict[int, list[int]] = {}
+    for entry in os.scandir("/proc"):
+        if not entry.name.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry.name}/stat") as fh:
+                ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            continue
+        children.setdefault(ppid, []).append(int(entry.name))
+    total, stack = 0, [root]
+    while stack:
+        pid = stack.pop()
+        total += _memory_bytes(pid)
+        stack += children.get(pid, [])
+    return total
+
+
+class PeakMemory:
+    """Samples the memory (PSS) of this process and its children every ``interval`` s."""
+
+    def __init__(self, interval: float = 0.05):
+        self.interval = interval
+        self.peak = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self.available = Path("/proc/self/stat").exists()
+
+    def _run(self):
+        while not self._stop.is_set():
+            self.peak = max(self.peak, _tree_memory_bytes(os.getpid()))
+            self._stop.wait(self.interval)
+
+    def __enter__(self):
+        if self.available:
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        if self.available:
+            self._thread.join()
+            self.peak = max(self.peak, _tree_memory_bytes(os.getpid()))
+
+
+def benchmark_clip(name: str = "bottle_pick_place", n_frames: int = 1000):
+    """The demo clip ``name`` stretched to about ``n_frames`` frames (the source rig is
+    returned with it)."""
+    rig = source_rig()
+    _, nominal = build_demo_timeline(name, time_scale=1.0, rig=rig)
+    scale = n_frames / nominal.nominal_frames
+    obj, timeline = build_demo_timeline(name, time_scale=scale, rig=rig)
+    return clip_from_timeline(name, obj, timeline, rig, SOURCE_RESOLUTION), rig
+
+
+def gradient_speedup(clip, source, target, annotations, config: RetargetConfig, n_frames: int = 8) -> dict:
+    """Per-frame solve time with analytic vs forward-difference gradients, same frames, same
+    MMA settings (the paper's solve: no warm start, ``maxeval`` evaluations from the rest
+    fingers) on ``n_frames`` contact frames spread over the clip."""
+    pairs = pair_contacts(clip)
+    transferred = transfer_clip(pairs, source, target, annotations)
+    markers = marker_targets(clip, source, target, annotations)
+    contacts = contact_targets(clip, pairs, transferred.contacts, keep_source_gap=config.contacts.keep_source_gap)
+    problem = Problem(target, config, markers, contacts, clip.object_poses, clip.table_pose, clip.table_half_extents,
+                      clip.object_vertices, clip.object_faces)
+    objective = problem.objective()
+    counts = np.diff(contacts.frame_offsets)
+    with_contacts = np.nonzero(counts > 0)[0]
+    frames = with_contacts[np.linspace(0, len(with_contacts) - 1, n_frames).astype(int)]
+    kinds = [d.kind for d in target.dofs]
+    root = [d.joint == 0 for d in target.dofs]
+    out = {}
+    for mode in ("analytic", "forward"):
+        seconds, values, evals = [], [], []
+        for f in frames:
+            objective.set_frame(problem.frame_data(int(f)))
+            seed = target.rest_pose.copy()
+            seed[:6] = clip.dof_values[f, :6]  # every rig starts with the same free root (demo clips)
+            t0 = time.perf_counter()
+            sol = solve_frame(objective, seed, target.lower, target.upper, np.ones(target.n_dofs, bool),
+                              maxeval=config.solver.maxeval, xtol_rel=config.solver.xtol_rel, gradient=mode,
+                              fd_step=config.solver.fd_step, kinds=kinds, root_mask=root,
+                              algorithm=config.solver.algorithm)
+            seconds.append(time.perf_counter() - t0)
+            values.append(sol.value)
+            evals.append(sol.evaluations)
+        out[mode] = {"ms_per_frame": 1000 * float(np.mean(seconds)), "objective_evaluations": float(np.mean(evals)),
+                     "median_value": float(np.median(values))}
+    out["frames"] = [int(f) for f in frames]
+    out["speedup"] = out["forward"]["ms_per_frame"] / out["analytic"]["ms_per_frame"]
+    return out
+
+
+def run_retarget_benchmark(n_frames: int = 1000, target: str = "human_alt", workers: int = 2,
+                           preset: str = "default", speedup_frames: int = 8) -> dict:
+    """Time every stage of :func:`retarget_core.retarget.retarget` on a ~``n_frames`` demo clip
+    onto the demo hand ``target``; peak resident memory of the process tree while it runs;
+    then the gradient speed-up on ``speedup_frames`` contact frames of the same clip."""
+    from ..retarget import retarget
+
+    t0 = time.perf_counter()
+    clip, source = benchmark_clip(n_frames=n_frames)
+    target_rig = demo_hand(target)
+    annotations = propose_annotations(source, target_rig)
+    setup_seconds = time.perf_counter() - t0
+    config = RetargetConfig.preset(preset)
+    config.workers = int(workers)
+    with PeakMemory() as memory:
+        result = retarget(clip, source, target_rig, annotations, config)
+    speed = gradient_speedup(clip, source, target_rig, annotations, RetargetConfig.preset("paper"),
+                             n_frames=speedup_frames)
+    return {
+        "frames": clip.n_frames, "target": target, "dofs": target_rig.n_dofs,
+        "target_vertices": int(target_rig.surface.n_vertices), "workers": int(workers), "preset": preset,
+        "setup_seconds": setup_seconds, "timings": result.timings, "peak_memory_bytes": memory.peak,
+        "peak_memory_measured": memory.available, "summary": result.summary, "counts": result.counts,
+        "gradient": speed,
+    }
