@@ -275,8 +275,9 @@ def solved_figures(rig: Rig, trajectory) -> tuple[np.ndarray, np.ndarray, np.nda
     for f in range(n_frames):
         pose = kin.pose(trajectory.q[f])
         if count[f]:
-            points, object_points, _ = contacts.frame(f)
-            distance[f] = MM * np.median(np.linalg.norm(kin.points(pose, kin.bind(points)) - object_points, axis=1))
+            points = contacts.frame(f)[0]  # the object's surface, not a kept source gap
+            distance[f] = MM * np.median(np.linalg.norm(kin.points(pose, kin.bind(points)) - contacts.surface_points(f),
+                                                        axis=1))
         if marker_binding is not None:
             x = kin.points(pose, marker_binding)[markers.pair_target]
             marker[f] = MM * float(weight @ np.linalg.norm(x - markers.source_positions[f], axis=1))

@@ -1,6 +1,7 @@
 """Run configuration (retarget_core.solve.config) and trajectory refinement
 (retarget_core.refine)."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -40,7 +41,11 @@ def test_presets_load():
     assert paper.workers >= 1
     default = RetargetConfig.preset("default")
     assert default.solver.gradient == "analytic"
-    assert default.weights == paper.weights
+    # the paper's weights; only the beyond-the-paper root gauge differs
+    assert dataclasses.replace(default.weights, lambda_r=0.0) == paper.weights
+    assert paper.weights.lambda_r == 0.0 and default.weights.lambda_r > 0
+    assert paper.refinement.patience == 0 and paper.solver.warm_start_iterations == 0
+    assert not paper.contacts.keep_source_gap
     d = default.to_dict()
     assert d["solver"]["maxeval"] == default.solver.maxeval
     assert d["fit"]["control_points_per_second"] == default.fit.control_points_per_second
@@ -324,3 +329,27 @@ def test_filter_short_signals():
     out, changed = lowpass_and_remove_peaks(q, FPS, cutoff_hz=60.0, peak_threshold=1.0)
     np.testing.assert_array_equal(out, q)
     assert not changed.any()
+
+
+def test_refinement_patience_stops_a_stale_loop_and_keeps_the_best_round():
+    """A re-solve that always puts the spike back (the optimum really is there): with patience
+    the loop stops after that many stale rounds instead of running to the cap."""
+    fps = 120.0
+    q = np.zeros((40, 1))
+    q[20, 0] = 0.5  # a spike far above E_acc
+    calls = []
+
+    def resolve(frames, seeds):
+        calls.append(len(frames))
+        out = seeds.copy()
+        out[frames == 20] = 0.5
+        return out
+
+    _, capped = refine_trajectory(q, fps, [True], resolve, e_acc_angular=1.0, e_acc_linear=1.0, max_iterations=20)
+    assert capped.iterations == 20 and not capped.converged
+    calls.clear()
+    best, patient = refine_trajectory(q, fps, [True], resolve, e_acc_angular=1.0, e_acc_linear=1.0,
+                                      max_iterations=20, patience=3)
+    assert patient.iterations == 3 and len(calls) == 3  # no round beats the start: 3 stale ones
+    assert patient.unresolved[20, 0] and best[20, 0] == 0.5
+    assert patient.violations_per_iteration[-1] >= min(patient.violations_per_iteration)

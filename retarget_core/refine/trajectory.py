@@ -157,7 +157,7 @@ class RefinementReport:
 
 
 def refine_trajectory(q, fps: float, is_rotation, resolve: ResolveFn, *, e_acc_angular: float,
-                      e_acc_linear: float, max_iterations: int = 20
+                      e_acc_linear: float, max_iterations: int = 20, patience: int = 0
                       ) -> tuple[np.ndarray, RefinementReport]:
     """Iterative acceleration refinement.
 
@@ -166,7 +166,10 @@ def refine_trajectory(q, fps: float, is_rotation, resolve: ResolveFn, *, e_acc_a
     trajectory, so re-solved frames are independent of each other); re-solve every frame with
     at least one flagged DOF via ``resolve(frames, seeds)`` with the interpolated row as seed;
     write the solutions back. At most ``max_iterations`` rounds; the entries still violating
-    after the last round are returned in ``report.unresolved``.
+    after the last round are returned in ``report.unresolved``. ``patience`` > 0 also stops
+    once that many rounds in a row failed to lower the violation count below its best, and
+    returns the best trajectory seen (re-solves that keep landing on the same poses are not
+    worth 20 rounds).
 
     ``e_acc_angular`` is in rad/s^2, ``e_acc_linear`` in m/s^2 (see
     :class:`retarget_core.solve.config.Refinement` for the paper's values in deg / cm)."""
@@ -181,7 +184,9 @@ def refine_trajectory(q, fps: float, is_rotation, resolve: ResolveFn, *, e_acc_a
     report = RefinementReport(iterations=0, converged=False)
     viol = acceleration_violations(q, fps, is_rotation, e_acc_angular, e_acc_linear)
     report.violations_per_iteration.append(int(viol.sum()))
-    while viol.any() and report.iterations < max_iterations:
+    best = (int(viol.sum()), q.copy(), viol)
+    stale = 0
+    while viol.any() and report.iterations < max_iterations and not (patience > 0 and stale >= patience):
         seeds = interpolate_violations(q, viol)
         frames = np.flatnonzero(viol.any(axis=1))
         solved = np.asarray(resolve(frames.copy(), seeds[frames].copy()), dtype=float)
@@ -195,6 +200,12 @@ def refine_trajectory(q, fps: float, is_rotation, resolve: ResolveFn, *, e_acc_a
         report.frames_resolved_per_iteration.append(int(frames.size))
         viol = acceleration_violations(q, fps, is_rotation, e_acc_angular, e_acc_linear)
         report.violations_per_iteration.append(int(viol.sum()))
+        if int(viol.sum()) < best[0]:
+            best, stale = (int(viol.sum()), q.copy(), viol), 0
+        else:
+            stale += 1
+    if patience > 0 and int(viol.sum()) > best[0]:
+        q, viol = best[1], best[2]
     report.converged = not viol.any()
     report.unresolved = viol
     return q, report

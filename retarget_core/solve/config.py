@@ -95,6 +95,7 @@ class Weights:
     lambda_t: float = 1.0   # table
     lambda_j: float = 50.0  # joint prior (L1 deviation of non-root DOFs)
     lambda_p: float = 0.0   # optional hand-object penetration term; 0 = off (not in the paper)
+    lambda_r: float = 0.0   # root gauge near Euler gimbal lock (rad^2, see objective); not in the paper
 
 
 @dataclass
@@ -104,7 +105,7 @@ class SolverSettings:
     relative-objective stop (nlopt convention). ``fd_step`` is only used with
     ``gradient = "forward"``. ``warm_start_iterations`` > 0 runs that many bounded
     Gauss-Newton (Levenberg-Marquardt) steps on the least-squares form of the objective before
-    the optimiser (0 = the paper: the optimiser alone, from the seed)."""
+    the optimiser in the full-pose solves (0 = the paper: the optimiser alone, from the seed)."""
 
     algorithm: str = "LD_MMA"
     maxeval: int = 100
@@ -133,7 +134,8 @@ class Refinement:
     ``e_acc_angular`` (deg/s^2) and ``e_acc_linear`` (cm/s^2) are compared with
     ``|(q[f+1]-q[f]) - (q[f]-q[f-1])| / dt`` — divided by ``dt`` once, as in the paper's code
     (see :func:`retarget_core.refine.acceleration_violations`). ``max_iterations`` caps the
-    violation / re-solve loop.
+    violation / re-solve loop; ``patience`` > 0 ends it earlier once that many rounds in a row
+    did not lower the violation count (0 = the paper: always up to the cap).
 
     The filtering pass (run before refinement) removes peaks — samples deviating from a running
     median over ``peak_window`` frames by more than ``peak_threshold_angular`` (deg) /
@@ -146,6 +148,7 @@ class Refinement:
     e_acc_angular: float = 500.0
     e_acc_linear: float = 500.0
     max_iterations: int = 20
+    patience: int = 0
     lowpass_cutoff_hz: float = 10.0
     lowpass_order: int = 4
     peak_threshold_angular: float = 10.0
@@ -255,14 +258,23 @@ class RetargetConfig:
         change the optimum, so ``gradient`` stays ``"analytic"`` in every preset
         (``"forward"`` exists only to measure the speed-up).
     ``"default"``
-        The project's choice: the paper's settings, except (1) every solve starts with up to 20
-        bounded Gauss-Newton steps before MMA: from the rest pose MMA needs far more than 100
-        evaluations to close a hand onto a few hundred contacts (measured: identity retarget
-        of bottle_pick_place, finger RMSE 6.6 deg with MMA alone at 100 evaluations, 2.5 deg
-        with the warm start, in a third of the time); (2) contact targets keep the source's
-        gap (:class:`Contacts`); (3) the root-only pass is limited to 50 evaluations per frame;
-        (4) the table term samples a third of the hand's vertices; (5) after filtering, only
-        frames the filter moved by more than 0.5 deg / 0.5 mm in some DOF are re-solved.
+        The project's choice: the paper's settings, except
+        (1) every full-pose solve starts with up to 20 bounded Gauss-Newton steps before MMA:
+        from rest fingers MMA needs far more than 100 evaluations to close a hand onto a few
+        hundred contacts (identity retarget of bottle_pick_place: finger RMSE 6.6 deg with MMA
+        alone at 100 evaluations, 1.2 deg with the warm start, in a third of the time);
+        (2) contact targets keep the source's gap (:class:`Contacts`);
+        (3) MMA then polishes with at most 30 evaluations (after the warm start, 100 lower the
+        objective by only another 0.2 % at 1.4x the time); the root-only pass, which starts
+        from the previous frame's root, uses MMA alone with 30;
+        (4) near gimbal lock of the root's Euler angles, the one combination of them that
+        barely turns the hand is held at the seed (lambda_r = 100 per rad^2, see
+        :class:`~retarget_core.solve.objective.FrameObjective`);
+        (5) the table term samples a third of the hand's vertices;
+        (6) after filtering, only frames the filter moved by more than 0.5 deg / 0.5 mm in some
+        DOF are re-solved;
+        (7) refinement stops after 3 rounds in a row without fewer violations
+        (``Refinement.patience``) and keeps the best round.
     """
 
     weights: Weights = field(default_factory=Weights)
@@ -330,6 +342,7 @@ class RetargetConfig:
         positive(r.e_acc_angular, "refinement.e_acc_angular")
         positive(r.e_acc_linear, "refinement.e_acc_linear")
         non_negative(r.max_iterations, "refinement.max_iterations")
+        non_negative(r.patience, "refinement.patience")
         positive(r.lowpass_cutoff_hz, "refinement.lowpass_cutoff_hz")
         positive(r.lowpass_order, "refinement.lowpass_order")
         positive(r.peak_threshold_angular, "refinement.peak_threshold_angular")
@@ -371,9 +384,12 @@ def _paper() -> RetargetConfig:
 
 def _default() -> RetargetConfig:
     cfg = _paper()
-    cfg.solver.root_maxeval = 50
+    cfg.weights.lambda_r = 100.0  # pins the Euler direction gimbal lock leaves free
+    cfg.solver.maxeval = 30  # after the warm start MMA only polishes (measured: 2 % of the value)
+    cfg.solver.root_maxeval = 30
     cfg.solver.warm_start_iterations = 20
     cfg.contacts.keep_source_gap = True
+    cfg.refinement.patience = 3  # measured: rounds after the third stale one never helped
     cfg.refinement.resolve_tolerance_angular = 0.5  # re-solve only frames the filter really moved
     cfg.refinement.resolve_tolerance_linear = 0.05
     cfg.sampling.table_sample_stride = 3  # a third of the hand's vertices feel the table

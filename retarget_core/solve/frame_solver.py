@@ -42,6 +42,7 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
     differences (one extra evaluation per active DOF) — only to measure the speed-up."""
     active = np.asarray(active, dtype=bool)
     base = np.clip(np.asarray(seed, dtype=np.float64), lower, upper)
+    objective.set_seed(base)
     if warm_start_iterations > 0:
         base = gauss_newton_warm_start(objective, base, lower, upper, active, warm_start_iterations)
     n = int(active.sum())

@@ -9,7 +9,13 @@
 - G_CN: contact normals, sum of (1 + n_object . n_hand): zero when exactly opposite;
 - G_T: table, sum over hand sample points of max(0, -sdf_table) (mm), the box's analytic SDF;
 - G_J: prior, smooth L1 deviation (radians) of the non-root DOFs from a reference pose;
-- G_P: hand-object penetration, sum over hand sample points of max(0, -sdf_object) (mm).
+- G_P: hand-object penetration, sum over hand sample points of max(0, -sdf_object) (mm);
+- G_R: root gauge, beyond the paper: a hand's root is three Euler angles, and near gimbal
+  lock (the middle angle near +-90 deg) one combination of them barely turns the hand, so the
+  data leave it free and the solves wander along it from frame to frame (measured: 20-180 deg
+  jumps of root_rx and root_rz, which no refinement can smooth). G_R = (v . (theta -
+  theta_seed))^2 (rad^2) along that combination v only, weighted up as lock nears
+  (:meth:`FrameObjective.set_seed`); zero far from lock.
 
 Distances are in millimetres so that the paper's weights (1, ..., lambda_j = 50) balance: data
 terms dominate and the prior only settles what the data leave free. Gradients come from the
@@ -29,7 +35,8 @@ from .config import RetargetConfig
 
 MM = 1000.0
 TABLE_MARGIN = 0.03  # metres: sample points farther above the table at the seed are skipped
-PRIOR_EPS = 0.05  # radians: the L1 prior is smoothed (quadratic) within about 3 degrees of zero
+PRIOR_EPS = 0.05  # radians
+GAUGE_SIGMA = 0.3  # smallest singular value of the root's rotation axes below which G_R acts: the L1 prior is smoothed (quadratic) within about 3 degrees of zero
 
 
 @dataclass
@@ -85,6 +92,11 @@ class FrameObjective:
         self.table = None if table_pose is None else (np.asarray(table_pose, float), np.asarray(table_half_extents, float))
         self.prior_mask = np.array([d.joint != 0 for d in rig.dofs])
         self.reference = rig.rest_pose if reference is None else np.asarray(reference, float)
+        # root rotation DOFs, and the Euler direction gimbal lock leaves free at the seed
+        self.root_rotation = np.array([d.joint == 0 and d.kind != "translate" for d in rig.dofs])
+        self.root_reference = rig.rest_pose.copy()
+        self.gauge_direction = np.zeros(int(self.root_rotation.sum()))
+        self.gauge_weight = 0.0
         self.object_tree = None
         if getattr(w, "lambda_p", 0.0) > 0 and object_vertices is not None:
             self.object_vertices = np.ascontiguousarray(object_vertices, dtype=np.float64)
@@ -102,6 +114,21 @@ class FrameObjective:
         self.frame = data
         self.contact_binding = self.kin.bind(data.contacts) if len(data.contacts) else None
         self.sample_binding = self.all_samples
+
+    def set_seed(self, q: np.ndarray) -> None:
+        """Anchor G_R at the seed q (D,): the root rotation DOFs' world axes at q form a (3, 3)
+        matrix whose smallest singular value drops to 0 at gimbal lock; its right singular
+        vector is the combination of Euler angles that barely turns the hand. Only that
+        direction is held, and only near lock (weight lambda_r (1 - sigma / GAUGE_SIGMA)^2)."""
+        self.root_reference = np.asarray(q, dtype=np.float64).copy()
+        self.gauge_weight = 0.0
+        if self.w.lambda_r <= 0 or self.root_rotation.sum() < 2:
+            return
+        axes = self.kin.pose(self.root_reference).dof_axis[self.root_rotation].T  # (3, k)
+        _, sigma, vt = np.linalg.svd(axes)
+        closeness = max(0.0, 1.0 - float(sigma[-1]) / GAUGE_SIGMA)
+        self.gauge_direction = vt[-1]
+        self.gauge_weight = self.w.lambda_r * closeness ** 2
 
     def focus_samples(self, q: np.ndarray, margin: float = TABLE_MARGIN) -> None:
         """Let the table term see only the sample points within ``margin`` (m) of the table at
@@ -179,6 +206,11 @@ class FrameObjective:
             value += w.lambda_j * float(np.sum(smooth - PRIOR_EPS))
             if want_grad:
                 grad[self.prior_mask] += w.lambda_j * d / smooth
+        if self.gauge_weight > 0:
+            d = float(self.gauge_direction @ (q - self.root_reference)[self.root_rotation])
+            value += self.gauge_weight * d * d
+            if want_grad:
+                grad[self.root_rotation] += 2 * self.gauge_weight * d * self.gauge_direction
         return value, grad
 
     def residuals(self, q: np.ndarray):
@@ -219,9 +251,15 @@ class FrameObjective:
             j[np.arange(len(d)), np.nonzero(self.prior_mask)[0]] = slope
             rows.append(r)
             jacs.append(j)
+        if self.gauge_weight > 0:
+            root = self.gauge_weight ** 0.5
+            j = np.zeros((1, len(q)))
+            j[0, self.root_rotation] = root * self.gauge_direction
+            rows.append([root * float(self.gauge_direction @ (q - self.root_reference)[self.root_rotation])])
+            jacs.append(j)
         if not rows:
             return np.zeros(0), np.zeros((0, len(q)))
-        return np.concatenate(rows), np.vstack(jacs)
+        return np.concatenate([np.asarray(r, dtype=np.float64) for r in rows]), np.vstack(jacs)
 
     def _penetration(self, points, pose, value, cot):
         inv = np.linalg.inv(pose)

@@ -86,7 +86,11 @@ def _solve_sequence(frames, seed):
     return out
 
 
-def _solve_frames(frames, seeds, root_only: bool):
+def _solve_frames(frames, seeds, root_only: bool, keyed: bool = False):
+    """Solve ``frames`` from ``seeds`` (F, D). ``keyed``: the prior pulls toward the seed (the
+    paper's "previously existing keyed value at frame f": the filtered or interpolated value
+    in the later passes) instead of the rest pose, so a re-solve stays near the smooth key
+    where the data allow it rather than returning to the same spike."""
     problem: Problem = _WORKER["problem"]
     objective: FrameObjective = _WORKER["objective"]
     cfg = problem.config.solver
@@ -98,11 +102,14 @@ def _solve_frames(frames, seeds, root_only: bool):
                     ftol_rel=cfg.ftol_rel, gradient=cfg.gradient, fd_step=cfg.fd_step,
                     kinds=[d.kind for d in rig.dofs], root_mask=[d.joint == 0 for d in rig.dofs],
                     algorithm=cfg.algorithm)
+    rest = rig.rest_pose
     for f, seed in zip(frames, seeds):
         objective.set_frame(problem.frame_data(int(f)))
+        objective.reference = np.asarray(seed, dtype=np.float64) if keyed else rest
         objective.focus_samples(seed)
-        sol = solve_frame(objective, seed, lower, upper, active, warm_start_iterations=cfg.warm_start_iterations,
-                          **settings)
+        # the root pass starts from the previous frame's root: MMA alone is enough there
+        sol = solve_frame(objective, seed, lower, upper, active,
+                          warm_start_iterations=0 if root_only else cfg.warm_start_iterations, **settings)
         evaluations = sol.evaluations
         if sol.ok and objective.unseen_table_contact(sol.q):
             # a point that was far from the table at the seed ended inside it: polish with it
@@ -126,17 +133,18 @@ class FrameRunner:
         else:
             _init_worker(problem)
 
-    def solve(self, frames, seeds, *, root_only=False, progress: Progress | None = None, stage: str = ""):
+    def solve(self, frames, seeds, *, root_only=False, keyed=False, progress: Progress | None = None,
+              stage: str = ""):
         frames = np.asarray(frames, dtype=np.int64)
         results = []
         if self.pool is None:
             for k in range(0, len(frames), 16):
-                results += _solve_frames(frames[k:k + 16], seeds[k:k + 16], root_only)
+                results += _solve_frames(frames[k:k + 16], seeds[k:k + 16], root_only, keyed)
                 if progress:
                     progress(stage, min(k + 16, len(frames)), len(frames))
         else:
             chunk = max(4, len(frames) // (self.workers * 8) + 1)
-            futures = [self.pool.submit(_solve_frames, frames[k:k + chunk], seeds[k:k + chunk], root_only)
+            futures = [self.pool.submit(_solve_frames, frames[k:k + chunk], seeds[k:k + chunk], root_only, keyed)
                        for k in range(0, len(frames), chunk)]
             done = 0
             for fut in futures:
@@ -211,7 +219,7 @@ def solve_trajectory(clip: Clip, source: Rig, target: Rig, annotations: Annotati
         pairs = pair_contacts(clip)
     timings["pairing"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    transferred = transfer_clip(pairs, source, target, annotations)
+    transferred = transfer_clip(pairs, source, target, annotations, workers=config.workers)
     markers = marker_targets(clip, source, target, annotations)
     contacts = contact_targets(clip, pairs, transferred.contacts, keep_source_gap=config.contacts.keep_source_gap)
     timings["transfer"] = time.perf_counter() - t0
@@ -265,7 +273,7 @@ def solve_trajectory(clip: Clip, source: Rig, target: Rig, annotations: Annotati
                 order=ref.lowpass_order, change_tolerance=ref.resolve_tolerances(rot))
             frames = np.nonzero(changed)[0]
             if len(frames):
-                q[frames], report = _pass(runner, frames, filtered, progress, "filter re-solve")
+                q[frames], report = _pass(runner, frames, filtered, progress, "filter re-solve", keyed=True)
                 reports["filter"] = report
             timings["filter"] = time.perf_counter() - t0
 
@@ -276,7 +284,7 @@ def solve_trajectory(clip: Clip, source: Rig, target: Rig, annotations: Annotati
             evals = {"n": 0}
 
             def resolve(frames, seeds):
-                solved = runner.solve(frames, seeds, progress=progress, stage="refinement")
+                solved = runner.solve(frames, seeds, keyed=True, progress=progress, stage="refinement")
                 evals["n"] += sum(r[2] for r in solved)
                 out = np.array(seeds, dtype=np.float64)
                 index = {int(f): i for i, f in enumerate(frames)}
@@ -286,7 +294,8 @@ def solve_trajectory(clip: Clip, source: Rig, target: Rig, annotations: Annotati
                 return out
 
             q, refinement = refine_trajectory(q, clip.fps, rot, resolve, e_acc_angular=ref.e_acc_angular_si,
-                                              e_acc_linear=ref.e_acc_linear_si, max_iterations=ref.max_iterations)
+                                              e_acc_linear=ref.e_acc_linear_si, max_iterations=ref.max_iterations,
+                                              patience=ref.patience)
             unresolved = refinement.unresolved
             reports["refine"] = refinement
             timings["refinement"] = time.perf_counter() - t0
@@ -296,9 +305,9 @@ def solve_trajectory(clip: Clip, source: Rig, target: Rig, annotations: Annotati
                       float(1 - transferred.contacts.dropped.mean()) if len(transferred.contacts.dropped) else 1.0)
 
 
-def _pass(runner: FrameRunner, frames, seeds, progress, stage):
+def _pass(runner: FrameRunner, frames, seeds, progress, stage, keyed=False):
     t0 = time.perf_counter()
-    solved = runner.solve(frames, seeds[frames], progress=progress, stage=stage)
+    solved = runner.solve(frames, seeds[frames], keyed=keyed, progress=progress, stage=stage)
     out = seeds[frames].copy()
     report = PassReport(frames=len(frames))
     index = {int(f): i for i, f in enumerate(frames)}

@@ -39,13 +39,21 @@ class MarkerTargets:
 class ContactTargets:
     """Contact pairs of all frames, split by frame_offsets (T+1,): target_faces (N,),
     target_barycentric (N, 3) on the target surface, object_points (N, 3) and object_normals
-    (N, 3) in world coordinates (metres, unit normals)."""
+    (N, 3) in world coordinates (metres, unit normals); gap (N,) metres: how far each object
+    point was moved out along its normal (``keep_source_gap``; zeros otherwise), so the point
+    on the object's surface is ``object_points - gap * object_normals``."""
 
     frame_offsets: np.ndarray
     target_faces: np.ndarray
     target_barycentric: np.ndarray
     object_points: np.ndarray
     object_normals: np.ndarray
+    gap: np.ndarray
+
+    def surface_points(self, f: int) -> np.ndarray:
+        """(N_f, 3) the object-surface points of frame f (without the kept gap)."""
+        sl = slice(int(self.frame_offsets[f]), int(self.frame_offsets[f + 1]))
+        return self.object_points[sl] - self.gap[sl, None] * self.object_normals[sl]
 
     def frame(self, f: int):
         sl = slice(int(self.frame_offsets[f]), int(self.frame_offsets[f + 1]))
@@ -108,6 +116,7 @@ def contact_targets(clip: Clip, pairs: ContactPairs, transferred: TransferredCon
     world_p = np.einsum("nab,nb->na", rot, local_p) + clip.object_poses[frame_of, :3, 3]
     world_n = np.einsum("nab,nb->na", rot, local_n)
     world_n /= np.linalg.norm(world_n, axis=1, keepdims=True)
+    gap = np.zeros(len(world_p))
     if keep_source_gap:
         hand_corners = clip.hand_faces[pairs.hand_face[keep]]
         hand_p = np.einsum("nk,nkd->nd", pairs.hand_barycentric[keep],
@@ -116,4 +125,4 @@ def contact_targets(clip: Clip, pairs: ContactPairs, transferred: TransferredCon
         world_p = world_p + gap[:, None] * world_n
     offsets = np.zeros(clip.n_frames + 1, dtype=np.int64)
     np.cumsum(np.bincount(frame_of, minlength=clip.n_frames), out=offsets[1:])
-    return ContactTargets(offsets, transferred.face[keep], transferred.barycentric[keep], world_p, world_n)
+    return ContactTargets(offsets, transferred.face[keep], transferred.barycentric[keep], world_p, world_n, gap)

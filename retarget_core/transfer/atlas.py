@@ -57,12 +57,13 @@ class Atlas:
     :func:`get_atlas` (cached) or directly."""
 
     def __init__(self, source: SurfaceGeometry, target: SurfaceGeometry, annotations: Annotations, *,
-                 chart_radius: float = CHART_RADIUS, reconstruction: str = "chart"):
+                 chart_radius: float = CHART_RADIUS, reconstruction: str = "chart", workers: int = 1):
         """``reconstruction``: "chart" (default) rebuilds a contact at chart coordinates
         (lambda_s r, theta) by inverting the target landmark's discrete log map, the same map
         type that wrote it on the source, so an identical pair of hands gives every contact
         back exactly; "trace" walks the geodesic (the exponential map) from the landmark
-        instead, as the paper describes: as accurate on smooth surfaces, about 10x slower."""
+        instead, as the paper describes: as accurate on smooth surfaces, about 10x slower.
+        ``workers`` > 1 computes the per-landmark log maps in that many processes."""
         if reconstruction not in ("chart", "trace"):
             raise InputError(f"reconstruction must be 'chart' or 'trace', got {reconstruction!r}")
         self.reconstruction = reconstruction
@@ -107,16 +108,15 @@ class Atlas:
         self.source_valid_faces = np.zeros((n_landmarks, n_faces), dtype=bool)
         self.source_charts: list[LogChart] = []
         radius = np.full((n_landmarks, len(source.vertices)), np.inf)
+        items = []
         for m in range(n_landmarks):
             c = self.source_curves[self.landmark_curve[m]]
             k = self.landmark_index[m]
-            f, b = int(c.faces[k]), c.barycentric[k]
-            coords = source.log_map(f, b, c.directions[k])
-            distance = source.geodesic_distance(f, b)
-            valid = source.valid_chart_vertices(f, b, coords, distance)
+            items.append((int(c.faces[k]), c.barycentric[k], c.directions[k], chart_radius))
+        for m, (coords, valid, valid_faces, distance) in enumerate(chart_fields(source, items, workers)):
             self.source_coords[m] = coords
-            self.source_valid_faces[m] = source.valid_chart_faces(coords, valid, distance, chart_radius)
-            self.source_charts.append(LogChart(source.faces, coords, chart_radius, self.source_valid_faces[m], distance))
+            self.source_valid_faces[m] = valid_faces
+            self.source_charts.append(LogChart(source.faces, coords, chart_radius, valid_faces, distance))
             radius[m, valid] = np.linalg.norm(coords[valid], axis=1)
         # geodesic Voronoi cell of every vertex (vertices no chart trusts go to the nearest by
         # the plain log-map radius)
@@ -126,22 +126,19 @@ class Atlas:
         self.vertex_landmark = np.argmin(radius, axis=0)
 
         # Target charts, laid out for point location.
-        self.target_charts: list[LogChart | None] = []
+        self.target_charts: list[LogChart | None] = [None] * n_landmarks
+        items, charted = [], []
         for m in range(n_landmarks):
             tc = self.target_curves[self.landmark_curve[m]]
             if tc is None:
-                self.target_charts.append(None)
                 continue
             k = self.landmark_index[m]
-            f, b = int(tc.faces[k]), tc.barycentric[k]
-            coords = target.log_map(f, b, tc.directions[k])
-            distance = target.geodesic_distance(f, b)
             lambda_s = annotations.curves[self.landmark_curve[m]].target.lambda_s
             scale = float(np.max(lambda_s(np.linspace(-np.pi, np.pi, 73))))
-            reach = chart_radius * max(scale, 1.0)
-            valid_faces = target.valid_chart_faces(coords, target.valid_chart_vertices(f, b, coords, distance), distance,
-                                                   reach)
-            self.target_charts.append(LogChart(target.faces, coords, reach, valid_faces, distance))
+            items.append((int(tc.faces[k]), tc.barycentric[k], tc.directions[k], chart_radius * max(scale, 1.0)))
+            charted.append(m)
+        for m, item, (coords, _, valid_faces, distance) in zip(charted, items, chart_fields(target, items, workers)):
+            self.target_charts[m] = LogChart(target.faces, coords, item[3], valid_faces, distance)
 
     @property
     def n_landmarks(self) -> int:
@@ -271,16 +268,54 @@ def _digest(*arrays, extra: str = "") -> str:
 
 
 def get_atlas(source_vertices: np.ndarray, source_faces: np.ndarray, target_vertices: np.ndarray,
-              target_faces: np.ndarray, annotations: Annotations) -> Atlas:
-    """The atlas of a hand pair, built once per (surfaces, annotations) and kept in memory."""
+              target_faces: np.ndarray, annotations: Annotations, *, workers: int = 1) -> Atlas:
+    """The atlas of a hand pair, built once per (surfaces, annotations) and kept in memory;
+    ``workers`` processes build its charts."""
     key = _digest(source_vertices, source_faces, target_vertices, target_faces,
                   extra=json.dumps(annotations_to_dict(annotations), sort_keys=True))
     if key in _CACHE:
         _CACHE.move_to_end(key)
         return _CACHE[key]
     atlas = Atlas(SurfaceGeometry(source_vertices, source_faces, name="source surface"),
-                  SurfaceGeometry(target_vertices, target_faces, name="target surface"), annotations)
+                  SurfaceGeometry(target_vertices, target_faces, name="target surface"), annotations,
+                  workers=workers)
     _CACHE[key] = atlas
     while len(_CACHE) > _CACHE_SIZE:
         _CACHE.popitem(last=False)
     return atlas
+
+
+# ---- per-landmark charts, optionally in worker processes ----------------------------------------
+def _one_chart(geometry: SurfaceGeometry, item):
+    face, barycentric, direction, reach = item
+    coords = geometry.log_map(face, barycentric, direction)
+    distance = geometry.geodesic_distance(face, barycentric)
+    valid = geometry.valid_chart_vertices(face, barycentric, coords, distance)
+    return coords, valid, geometry.valid_chart_faces(coords, valid, distance, reach), distance
+
+
+_CHART_WORKER: dict = {}
+
+
+def _init_chart_worker(vertices, faces, name):
+    _CHART_WORKER["geometry"] = SurfaceGeometry(vertices, faces, name=name)
+
+
+def _chart_batch(items):
+    return [_one_chart(_CHART_WORKER["geometry"], item) for item in items]
+
+
+def chart_fields(geometry: SurfaceGeometry, items, workers: int = 1) -> list:
+    """For each (face, barycentric (3,), zero direction (3,), reach m) landmark: its log-map
+    coordinates (V, 2), trusted vertices (V,), chart faces (F,) and heat distance (V,). Worker
+    processes rebuild the geometry (potpourri3d solvers do not pickle)."""
+    workers = max(1, min(int(workers), len(items) // 8))
+    if workers == 1:
+        return [_one_chart(geometry, item) for item in items]
+    from concurrent.futures import ProcessPoolExecutor
+
+    chunk = max(1, len(items) // (workers * 4))
+    with ProcessPoolExecutor(workers, initializer=_init_chart_worker,
+                             initargs=(geometry.vertices, geometry.faces, geometry.name)) as pool:
+        parts = pool.map(_chart_batch, [items[k:k + chunk] for k in range(0, len(items), chunk)])
+        return [field for part in parts for field in part]

@@ -28,20 +28,21 @@ class ClipTransfer:
         return slice(int(self.pairs.frame_offsets[f]), int(self.pairs.frame_offsets[f + 1]))
 
 
-def atlas_for(source: Rig, target: Rig, annotations: Annotations) -> Atlas:
-    """The (cached) atlas of two rigs' rest surfaces."""
+def atlas_for(source: Rig, target: Rig, annotations: Annotations, *, workers: int = 1) -> Atlas:
+    """The (cached) atlas of two rigs' rest surfaces, built by ``workers`` processes."""
     return get_atlas(source.surface.vertices, source.surface.faces, target.surface.vertices, target.surface.faces,
-                     annotations)
+                     annotations, workers=workers)
 
 
-def transfer_clip(pairs: ContactPairs, source: Rig, target: Rig, annotations: Annotations) -> ClipTransfer:
+def transfer_clip(pairs: ContactPairs, source: Rig, target: Rig, annotations: Annotations, *,
+                  workers: int = 1) -> ClipTransfer:
     """Carry every paired contact of every frame (the hand ends of ``pairs``, on ``source``'s
-    surface) onto ``target`` in one vectorised pass."""
+    surface) onto ``target`` in one vectorised pass (``workers``: see :func:`atlas_for`)."""
     if pairs.n_hand_faces != len(source.surface.faces):
         raise InputError(
             f"the contact pairs were made on a hand with {pairs.n_hand_faces} faces; the source rig "
             f"{source.name!r} has {len(source.surface.faces)}", element="source rig")
-    atlas = atlas_for(source, target, annotations)
+    atlas = atlas_for(source, target, annotations, workers=workers)
     contacts = atlas.transfer(SurfacePoints(pairs.hand_face, pairs.hand_barycentric))
     return ClipTransfer(atlas, pairs, contacts)
 

@@ -134,8 +134,11 @@ class SurfaceGeometry:
         angularly near the cut locus of a fingertip, but stays usable), and not covered in the
         layout by a face geodesically nearer the landmark (where the map folds over itself only
         the near sheet is kept, so the chart is one-to-one); within ``radius`` metres."""
-        keep = self._faithful_faces(coords, valid_vertices)
-        keep &= np.linalg.norm(coords[self.faces], axis=2).max(axis=1) <= radius  # the chart's extent
+        # the chart's extent first: most of the surface lies beyond it
+        r = np.sqrt(np.einsum("ij,ij->i", coords, coords))
+        keep = r[self.faces].max(axis=1) <= radius
+        ids = np.nonzero(keep)[0]
+        keep[ids] = self._faithful_faces(coords, valid_vertices, ids)
         ids = np.nonzero(keep)[0]
         if len(ids) < 2:
             return keep
@@ -163,16 +166,24 @@ class SurfaceGeometry:
         keep[ids[shadowed]] = False
         return keep
 
-    def _faithful_faces(self, coords: np.ndarray, valid_vertices: np.ndarray) -> np.ndarray:
-        tri2 = coords[self.faces]
+    def _faithful_faces(self, coords: np.ndarray, valid_vertices: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        """(len(ids),) for faces ``ids``: see :meth:`valid_chart_faces`."""
+        faces = self.faces[ids]
+        tri2 = coords[faces]
         area = 0.5 * ((tri2[:, 1, 0] - tri2[:, 0, 0]) * (tri2[:, 2, 1] - tri2[:, 0, 1])
                       - (tri2[:, 2, 0] - tri2[:, 0, 0]) * (tri2[:, 1, 1] - tri2[:, 0, 1]))
-        tri3 = self.vertices[self.faces]
-        ratio = np.stack([np.linalg.norm(tri2[:, k] - tri2[:, (k + 1) % 3], axis=1)
-                          / np.maximum(np.linalg.norm(tri3[:, k] - tri3[:, (k + 1) % 3], axis=1), 1e-12)
-                          for k in range(3)], axis=1)
-        return (valid_vertices[self.faces].all(axis=1) & (area > 1e-14)
+        edge2 = tri2[:, [1, 2, 0]] - tri2
+        ratio = np.sqrt(np.einsum("fkd,fkd->fk", edge2, edge2)) / self._edge_lengths[ids]
+        return (valid_vertices[faces].all(axis=1) & (area > 1e-14)
                 & (ratio.min(axis=1) > 0.25) & (ratio.max(axis=1) < 4.0))
+
+    @property
+    def _edge_lengths(self) -> np.ndarray:
+        """(F, 3) 3D lengths of each face's edges k -> k+1 (m), computed once."""
+        if getattr(self, "_edge_cache", None) is None:
+            tri3 = self.vertices[self.faces]
+            self._edge_cache = np.maximum(np.linalg.norm(tri3[:, [1, 2, 0]] - tri3, axis=2), 1e-12)
+        return self._edge_cache
 
     def _tangent_angle(self, vertex: int, direction: np.ndarray) -> float:
         return float(np.arctan2(direction @ self.basis_y[vertex], direction @ self.basis_x[vertex]))
