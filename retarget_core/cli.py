@@ -90,10 +90,8 @@ def _retarget_demo(out: Path, resolution: float, time_scale: float) -> None:
     """Retarget a short window of the demo clip onto every demo hand with the proposed
     annotations (``out/annotations``) and the default preset; write ``out/retarget/<hand>/``
     and a summary table (``out/retarget/summary.md``)."""
-    import numpy as np
-
     from .clip import load_clip
-    from .clip.demo import make_demo_clip, source_rig
+    from .clip.demo import grasp_window, make_demo_clip, source_rig
     from .pairing import pair_contacts
     from .rig.demo_hands import DEMO_HANDS, demo_hand
     from .solve.config import load_config
@@ -102,12 +100,10 @@ def _retarget_demo(out: Path, resolution: float, time_scale: float) -> None:
     source = source_rig()
     saved = out / "clips" / f"{RETARGET_DEMO_CLIP}.npz"
     full = load_clip(saved) if time_scale == 1.0 and saved.is_file() else make_demo_clip(RETARGET_DEMO_CLIP, rig=source)
-    first = int(np.argmax((full.contact_labels > 0).any(axis=1)))
-    start = max(0, min(first - RETARGET_DEMO_FRAMES // 2, full.n_frames - RETARGET_DEMO_FRAMES))
-    clip = full.slice(start, start + RETARGET_DEMO_FRAMES)
+    clip = grasp_window(full, RETARGET_DEMO_FRAMES)
     clip_path = out / "retarget" / f"{RETARGET_DEMO_CLIP}_grasp.npz"
     clip.save(clip_path)
-    print(f"clip {clip_path}: frames {start}-{start + clip.n_frames - 1} of {RETARGET_DEMO_CLIP}")
+    print(f"clip {clip_path}: {clip.n_frames} frames of {RETARGET_DEMO_CLIP} around the first contact")
     pairs = pair_contacts(clip)
     config = load_config(None, "default")
     rows = ["| hand | DOFs | frames | seconds | median contact distance (mm) | failed frames |",

@@ -176,3 +176,21 @@ def test_bad_config_overrides_exit_2(setup, tmp_path, setting, key, message):
     assert code == 2
     assert key in err and message in err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("hand", ["human_alt", "witch"])
+def test_human_like_targets_touch_the_object_within_3mm(hand):
+    """Default preset, a natural-speed second of the bottle clip (reach, grasp, lift), proposed
+    annotations: the median distance between the target's contact points and their object
+    points over contact frames is reported and under 3 mm on the human-like hands."""
+    from retarget_core.clip.demo import grasp_window
+
+    source = source_rig(RES)
+    target = demo_hand(hand, RES)
+    clip = grasp_window(make_demo_clip("bottle_pick_place", resolution=RES, rig=source), 120)
+    config = load_config(None, "default", {"workers": 2})
+    result = retarget(clip, source, target, propose_annotations(source, target), config)
+    median = result.summary["contact_distance_median_mm"]
+    assert result.summary["contact_frames"] > 30
+    assert result.summary["failed_frames"] == 0
+    assert median is not None and median < 3.0, median

@@ -466,3 +466,13 @@ def make_demo_clip(name: str, *, time_scale: float = 1.0, resolution: float = SO
     rig = rig or source_rig(resolution)
     obj, timeline = build_demo_timeline(name, time_scale=time_scale, rig=rig)
     return clip_from_timeline(name, obj, timeline, rig, resolution)
+
+
+def grasp_window(clip: Clip, n_frames: int = 120) -> Clip:
+    """``n_frames`` consecutive frames of ``clip`` starting half of them before its first
+    contact (reach, grasp, lift at the clip's own speed): the demo's and the tests' retarget
+    input. A clip shortened with ``time_scale`` < 1 moves faster than the acceleration
+    threshold E_acc allows, a window of a natural-speed clip does not."""
+    first = int(np.argmax((clip.contact_labels > 0).any(axis=1)))
+    start = max(0, min(first - n_frames // 2, clip.n_frames - n_frames))
+    return clip.slice(start, start + n_frames)

@@ -172,19 +172,26 @@ class Kinematics:
         m = self._mesh(mesh)
         points.validate(m.faces)
         corners = m.faces[points.faces]  # (P, 3)
-        dense = m.dense_weights(self.n_joints)
+        dense, vertex_normals = self._vertex_data(mesh)
         weights = np.einsum("pk,pkj->pj", points.barycentric, dense[corners])
         rest = np.einsum("pk,pkd->pd", points.barycentric, m.vertices[corners])
-        normals = np.einsum("pk,pkd->pd", points.barycentric, m.vertex_normals()[corners])
+        normals = np.einsum("pk,pkd->pd", points.barycentric, vertex_normals[corners])
         return self._binding(weights, rest, normals)
+
+    def _vertex_data(self, mesh: str):
+        """Dense skin weights (V, J) and rest vertex normals (V, 3) of ``mesh``, computed once
+        (a solve binds new contact points every frame)."""
+        cache = self.__dict__.setdefault("_vertex_data_cache", {})
+        if mesh not in cache:
+            m = self._mesh(mesh)
+            cache[mesh] = (m.dense_weights(self.n_joints), m.vertex_normals())
+        return cache[mesh]
 
     def bind_vertices(self, mesh: str = "surface") -> SurfaceBinding:
         """Skinning data of every vertex of ``mesh`` (cached)."""
         if mesh not in self._vertex_bindings:
-            m = self._mesh(mesh)
-            self._vertex_bindings[mesh] = self._binding(
-                m.dense_weights(self.n_joints), m.vertices, m.vertex_normals()
-            )
+            dense, normals = self._vertex_data(mesh)
+            self._vertex_bindings[mesh] = self._binding(dense, self._mesh(mesh).vertices, normals)
         return self._vertex_bindings[mesh]
 
     # ---- evaluation ------------------------------------------------------------------------
