@@ -30,6 +30,7 @@ bench: setup
 	$(BIN)/handretarget bench kinematics
 	$(BIN)/handretarget bench pairing
 	$(BIN)/handretarget bench transfer
+	$(BIN)/handretarget bench
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT)
