@@ -339,17 +339,23 @@ def _write_object(stage, vertices, faces, poses, n_frames: int):
     mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
 
 
-def read_dof_splines(path) -> dict:
-    """{DOF name: Ts.Spline} of every ``dof:*`` attribute carrying a spline in the layer at
-    ``path`` (time in time codes). The DOF name is the one in customData where present."""
-    Gf, Sdf, Tf, Ts, Usd, UsdGeom, UsdSkel, Vt = _pxr()
+def _open_layer(path):
+    """The USD stage at ``path``, or InputError naming the file."""
+    Usd = _pxr()[4]
     path = Path(path)
     if not path.is_file():
         raise InputError("file not found", source=str(path))
     stage = Usd.Stage.Open(str(path))
     if stage is None:
         raise InputError("not a readable USD file", source=str(path))
+    return stage
+
+
+def read_dof_splines(path) -> dict:
+    """{DOF name: Ts.Spline} of every ``dof:*`` attribute carrying a spline in the layer at
+    ``path`` (time in time codes). The DOF name is the one in customData where present."""
     out = {}
+    stage = _open_layer(path)  # held: prims expire with their stage
     for prim in stage.Traverse():
         for attr in prim.GetAttributes():
             name = attr.GetName()
@@ -362,11 +368,8 @@ def read_dof_splines(path) -> dict:
 
 def read_dof_bsplines(path) -> dict:
     """{DOF name: BSplineCurve} rebuilt from the raw knots and coefficients in customData."""
-    Gf, Sdf, Tf, Ts, Usd, UsdGeom, UsdSkel, Vt = _pxr()
-    stage = Usd.Stage.Open(str(path))
-    if stage is None:
-        raise InputError("not a readable USD file", source=str(path))
     out = {}
+    stage = _open_layer(path)  # held: prims expire with their stage
     for prim in stage.Traverse():
         for attr in prim.GetAttributes():
             info = attr.GetCustomDataByKey(CUSTOM_KEY) if attr.GetName().startswith(DOF_PREFIX) else None
