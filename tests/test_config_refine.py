@@ -96,6 +96,8 @@ def test_toml_override_applies(tmp_path):
         ("[refinement]\ne_acc_linear = 0\n", "refinement.e_acc_linear"),
         ("[solver]\ngradient = \"central\"\n", "solver.gradient"),
         ("weights = 3\n", "weights"),
+        ("[markers]\ndistance = \"cubic\"\n", "markers.distance"),
+        ("[markers]\nhuber_width = -0.1\n", "markers.huber_width"),
         ("[fit]\ncontrol_points = 60\ncontrol_points_per_second = 10.0\n", "fit.control_points"),
     ],
 )

@@ -29,9 +29,10 @@ def setup():
     return rig, clip, annotations, pairs, transferred
 
 
-def _problem(setup, **weights):
+def _problem(setup, marker_distance=None, **weights):
     rig, clip, annotations, pairs, transferred = setup
     cfg = RetargetConfig.preset("default")
+    cfg.markers.distance = marker_distance or cfg.markers.distance
     for k, v in weights.items():
         setattr(cfg.weights, k, v)
     markers = marker_targets(clip, rig, rig, annotations)
@@ -98,6 +99,38 @@ def test_residual_form_equals_objective_and_its_jacobian_matches(setup):
     assert np.isclose(r @ r, objective.value_and_grad(q, want_grad=False)[0], rtol=1e-10)
     fd = _central_difference(lambda x: objective.residuals(x)[0], q).T
     assert np.abs(jac - fd).max() <= 1e-5 * np.abs(fd).max()
+
+
+@pytest.mark.parametrize("distance", ["squared", "huber"])
+def test_marker_term_gradient_and_residual_form_for_each_distance(setup, distance):
+    problem = _problem(setup, marker_distance=distance, lambda_c=0.0, lambda_t=0.0, lambda_j=0.0, lambda_p=0.0)
+    objective = problem.objective()
+    f = _busiest_frame(problem)
+    objective.set_frame(problem.frame_data(f))
+    q = setup[1].dof_values[f] + np.random.default_rng(11).normal(scale=0.08, size=problem.rig.n_dofs)
+    value, grad = objective.value_and_grad(q)
+    fd = _central_difference(lambda x: objective.value_and_grad(x, want_grad=False)[0], q)
+    assert value > 0 and np.abs(fd).max() > 0
+    assert np.abs(grad - fd).max() <= 1e-5 * np.abs(fd).max()
+    r, jac = objective.residuals(q)
+    assert np.isclose(r @ r, value, rtol=1e-10)
+    fd_r = _central_difference(lambda x: objective.residuals(x)[0], q).T
+    assert np.abs(jac - fd_r).max() <= 1e-5 * np.abs(fd_r).max()
+
+
+def test_marker_penalty_known_values(setup):
+    """A pair 4 mm off with delta = 3 mm costs 2 * 3 * (sqrt(16 + 9) - 3) = 12 (mm^2); squared,
+    16. Near zero both are d^2; far off the Huber pull (d rho / d d) tends to 2 delta = 6
+    while the squared one grows as 2 d."""
+    d2 = np.array([0.0, 16.0, 1e6, 1e-6])
+    huber = _problem(setup, marker_distance="huber").objective()
+    huber.marker_delta = 3.0
+    rho, slope = huber._marker_penalty(d2)
+    assert np.allclose(rho[:2], [0.0, 12.0])
+    assert np.isclose(rho[3], 1e-6, rtol=1e-6) and np.isclose(slope[0], 1.0)
+    assert np.isclose(2 * np.sqrt(d2[2]) * slope[2], 6.0, rtol=1e-5)  # d rho / d d = 2 d slope
+    rho, slope = _problem(setup, marker_distance="squared").objective()._marker_penalty(d2)
+    assert np.allclose(rho, d2) and np.allclose(slope, 1.0)
 
 
 def test_box_sdf_known_values():

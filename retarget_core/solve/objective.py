@@ -3,8 +3,10 @@
     E(q) = lambda_m G_M + lambda_c (lambda_cd G_CD + lambda_cn G_CN) + lambda_t G_T + lambda_j G_J
            (+ lambda_p G_P, beyond the paper)
 
-- G_M: markers, sum over marker pairs of w * |target point - source marker|^2 (mm^2; a marker
-  of K pairs has w = 1/K so every marker counts once);
+- G_M: markers, sum over marker pairs of w * rho(|target point - source marker|) (a marker of
+  K pairs has w = 1/K so every marker counts once), rho(d) = d^2 (mm^2) or, with
+  ``markers.distance = "huber"``, the pseudo-Huber 2 delta (sqrt(d^2 + delta^2) - delta):
+  d^2 within about delta, then growing like 2 delta d (a bounded pull);
 - G_CD: contacts, sum of |target contact point - object point|^2 (mm^2);
 - G_CN: contact normals, sum of (1 + n_object . n_hand): zero when exactly opposite;
 - G_T: table, sum over hand sample points of max(0, -sdf_table) (mm), the box's analytic SDF;
@@ -84,6 +86,8 @@ class FrameObjective:
         self.marker_binding = self.kin.bind(SurfacePoints(marker_faces, marker_barycentric)) if len(marker_faces) else None
         self.pair_target = np.asarray(pair_target, dtype=np.int64)
         self.pair_weight = np.asarray(pair_weight, dtype=np.float64)
+        self.marker_delta = (config.markers.huber_width_si * MM if config.markers.distance == "huber"
+                             else None)  # mm; None = squared distances
         stride = max(1, int(config.sampling.table_sample_stride))
         samples = np.arange(0, rig.surface.n_vertices, stride)
         self.sample_vertices = samples
@@ -165,10 +169,11 @@ class FrameObjective:
         if self.marker_binding is not None and w.lambda_m > 0 and len(self.pair_target):
             x = kin.points(pose, self.marker_binding)
             e = (x[self.pair_target] - data.markers) * MM  # (Np, 3) mm
-            value += w.lambda_m * float(np.sum(self.pair_weight * np.einsum("ij,ij->i", e, e)))
+            rho, slope = self._marker_penalty(np.einsum("ij,ij->i", e, e))
+            value += w.lambda_m * float(np.sum(self.pair_weight * rho))
             if want_grad:
                 cot = np.zeros_like(x)
-                np.add.at(cot, self.pair_target, (2 * MM * w.lambda_m) * self.pair_weight[:, None] * e)
+                np.add.at(cot, self.pair_target, (2 * MM * w.lambda_m) * (self.pair_weight * slope)[:, None] * e)
                 grad += kin.points_vjp(pose, self.marker_binding, cot)
 
         if self.contact_binding is not None and w.lambda_c > 0:
@@ -224,9 +229,23 @@ class FrameObjective:
         rows, jacs = [], []
         if self.marker_binding is not None and w.lambda_m > 0 and len(self.pair_target):
             x, jx = kin.points_jacobian(pose, self.marker_binding)
-            s = np.sqrt(w.lambda_m * self.pair_weight)[:, None] * MM
-            rows.append(((x[self.pair_target] - data.markers) * s).ravel())
-            jacs.append((jx[self.pair_target] * s[:, :, None]).reshape(-1, len(q)))
+            e = (x[self.pair_target] - data.markers) * MM  # (Np, 3) mm
+            je = jx[self.pair_target] * MM  # (Np, 3, D) mm per unit DOF
+            # r = s(d^2) e with s^2 = lambda w rho / d^2, so |r|^2 = lambda w rho exactly;
+            # dr = s de + e (ds/dd^2) 2 e.de
+            d2 = np.einsum("ij,ij->i", e, e)
+            if self.marker_delta is None:
+                s, ds = np.sqrt(w.lambda_m * self.pair_weight), np.zeros(len(d2))
+            else:
+                root = np.sqrt(d2 + self.marker_delta ** 2)
+                # rho / d^2 = 2 delta / (root + delta)
+                s = np.sqrt(w.lambda_m * self.pair_weight * 2 * self.marker_delta / (root + self.marker_delta))
+                ds = -s / (4 * root * (root + self.marker_delta))
+            rows.append((e * s[:, None]).ravel())
+            jm = je * s[:, None, None]
+            if self.marker_delta is not None:
+                jm += e[:, :, None] * (2 * ds[:, None] * np.einsum("ij,ijd->id", e, je))[:, None, :]
+            jacs.append(jm.reshape(-1, len(q)))
         if self.contact_binding is not None and w.lambda_c > 0:
             x, jx = kin.points_jacobian(pose, self.contact_binding)
             s = np.sqrt(w.lambda_c * w.lambda_cd) * MM
@@ -260,6 +279,14 @@ class FrameObjective:
         if not rows:
             return np.zeros(0), np.zeros((0, len(q)))
         return np.concatenate([np.asarray(r, dtype=np.float64) for r in rows]), np.vstack(jacs)
+
+    def _marker_penalty(self, d2: np.ndarray):
+        """rho and d rho / d(d^2) per marker pair (Np,) from the squared distances d2 (Np,) mm^2."""
+        if self.marker_delta is None:
+            return d2, np.ones_like(d2)
+        delta = self.marker_delta
+        root = np.sqrt(d2 + delta * delta)
+        return 2 * delta * (root - delta), delta / root
 
     def _penetration(self, points, pose, value, cot):
         inv = np.linalg.inv(pose)
