@@ -63,6 +63,7 @@ from retarget_core.errors import InputError
 __all__ = [
     "GRADIENT_MODES",
     "MARKER_DISTANCES",
+    "METHODS",
     "PRESETS",
     "SUPPORTED_ALGORITHMS",
     "Contacts",
@@ -83,6 +84,8 @@ SUPPORTED_ALGORITHMS = ("LD_MMA", "LD_CCSAQ", "LD_SLSQP", "LD_LBFGS")
 #: ``solver.gradient`` values: ``"analytic"`` (the core's Jacobians) or ``"forward"`` (forward
 #: differences with ``fd_step``, one skinning pass per DOF; kept only to measure the speed-up).
 GRADIENT_MODES = ("analytic", "forward")
+#: ``method`` values: the paper's contact-based objective and the two contact-free baselines.
+METHODS = ("contacts", "fingertips", "keyvectors")
 #: ``markers.distance`` values (see :class:`Markers`).
 MARKER_DISTANCES = ("squared", "huber")
 
@@ -316,6 +319,9 @@ class RetargetConfig:
     markers: Markers = field(default_factory=Markers)
     sampling: Sampling = field(default_factory=Sampling)
     workers: int = field(default_factory=_default_workers)
+    #: the per-frame objective of the finger passes: "contacts" (the paper's method) or one of
+    #: the contact-free baselines "fingertips" / "keyvectors" (:mod:`~retarget_core.solve.baselines`)
+    method: str = "contacts"
 
     @classmethod
     def preset(cls, name: str = "default") -> "RetargetConfig":
@@ -398,6 +404,8 @@ class RetargetConfig:
         positive(self.sampling.table_sample_stride, "sampling.table_sample_stride")
         positive(self.sampling.penetration_sample_stride, "sampling.penetration_sample_stride")
         positive(self.workers, "workers")
+        if self.method not in METHODS:
+            fail(f"must be one of {', '.join(METHODS)}, got {self.method!r}", "method")
 
 
 # --------------------------------------------------------------------------------------------

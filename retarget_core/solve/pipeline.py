@@ -24,6 +24,7 @@ from ..pairing.dense import ContactPairs, pair_contacts
 from ..rig.model import Rig
 from ..transfer.annotations import Annotations
 from ..transfer.clip_transfer import transfer_clip
+from .baselines import FingertipObjective, KeyvectorObjective, keyvector_beta
 from .config import RetargetConfig
 from .frame_solver import solve_frame
 from .objective import FrameData, FrameObjective
@@ -59,6 +60,24 @@ class Problem:
                               self.markers.pair_target, self.markers.pair_weight, self.table_pose,
                               self.table_half_extents, self.object_vertices, self.object_faces)
 
+    def finger_objective(self):
+        """The objective of the full-pose passes: the same as :meth:`objective` for the paper's
+        method, a baseline's (:mod:`.baselines`) otherwise."""
+        method = self.config.method
+        if method == "contacts":
+            return self.objective()
+        m = self.markers
+        common = dict(table_pose=self.table_pose, table_half_extents=self.table_half_extents,
+                      object_vertices=self.object_vertices, object_faces=self.object_faces)
+        if method == "fingertips":
+            return FingertipObjective(self.rig, self.config, m.target_faces, m.target_barycentric, m.pair_target,
+                                      m.pair_weight, m.names, **common)
+        kin = self.rig.kinematics()
+        rest_markers = kin.points(self.rig.rest_pose, kin.bind(SurfacePoints(m.target_faces, m.target_barycentric)))
+        beta = keyvector_beta(rest_markers, m.pair_target, m.names, m.source_positions)
+        return KeyvectorObjective(self.rig, self.config, m.target_faces, m.target_barycentric, m.pair_target,
+                                  m.pair_weight, m.names, beta=beta, **common)
+
     def frame_data(self, f: int) -> FrameData:
         points, obj_p, obj_n = self.contacts.frame(f)
         return FrameData(self.markers.source_positions[f], points, obj_p, obj_n, self.object_poses[f])
@@ -72,6 +91,9 @@ def _init_worker(problem: Problem) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     _WORKER["problem"] = problem
     _WORKER["objective"] = problem.objective()
+    # the baselines solve the fingers with their own objective under the root pass's root
+    _WORKER["finger_objective"] = (_WORKER["objective"] if problem.config.method == "contacts"
+                                   else problem.finger_objective())
 
 
 def _solve_sequence(frames, seed):
@@ -92,11 +114,17 @@ def _solve_frames(frames, seeds, root_only: bool, keyed: bool = False):
     in the later passes) instead of the rest pose, so a re-solve stays near the smooth key
     where the data allow it rather than returning to the same spike."""
     problem: Problem = _WORKER["problem"]
-    objective: FrameObjective = _WORKER["objective"]
+    objective: FrameObjective = _WORKER["objective"] if root_only else _WORKER["finger_objective"]
     cfg = problem.config.solver
     rig = problem.rig
     lower, upper = rig.lower, rig.upper
-    active = np.array([d.joint == 0 for d in rig.dofs]) if root_only else np.ones(rig.n_dofs, dtype=bool)
+    root = np.array([d.joint == 0 for d in rig.dofs])
+    if root_only:
+        active = root
+    elif problem.config.method != "contacts":
+        active = ~root  # a baseline keeps the root of the root pass (the paper's "ground truth root")
+    else:
+        active = np.ones(rig.n_dofs, dtype=bool)
     out = []
     settings = dict(maxeval=cfg.root_maxeval if root_only else cfg.maxeval, xtol_rel=cfg.xtol_rel,
                     ftol_rel=cfg.ftol_rel, gradient=cfg.gradient, fd_step=cfg.fd_step,
@@ -228,6 +256,8 @@ def solve_trajectory(clip: Clip, source: Rig, target: Rig, annotations: Annotati
 
     problem = Problem(target, config, markers, contacts, clip.object_poses, clip.table_pose, clip.table_half_extents,
                       clip.object_vertices, clip.object_faces)
+    if config.method != "contacts":
+        problem.finger_objective()  # a baseline's missing markers are an input error, before any work
     n_frames, n_dofs = clip.n_frames, target.n_dofs
     rest = target.rest_pose
     reports = {}
