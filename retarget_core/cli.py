@@ -483,6 +483,25 @@ def _cmd_retarget(args) -> int:
     return 0
 
 
+def _cmd_evaluate(args) -> int:
+    import json
+
+    from .evaluate.report import write_evaluation
+
+    paths = write_evaluation(args.dir, stride=args.stride, self_intersection_stride=args.self_stride,
+                             render=not args.no_render)
+    doc = json.loads(Path(paths["metrics.json"]).read_text(encoding="utf-8"))
+    s = doc["summary"]
+    print(f"evaluated {args.dir}: {doc['rig']} ({doc['method']}), {doc['frames']} frames")
+    for key, value in s.items():
+        print(f"  {key}: {value}")
+    for kind, reason in doc["unavailable"].items():
+        print(f"  {kind} intersection unavailable: {reason}")
+    for path in paths.values():
+        print(f"wrote {path}")
+    return 0
+
+
 def _cmd_bench_transfer(args) -> int:
     from .benchmarks.transfer import run_transfer_benchmark
 
@@ -644,6 +663,13 @@ def build_parser() -> argparse.ArgumentParser:
                      help="configuration override, e.g. solver.maxeval=50 (repeatable)")
     ret.add_argument("--workers", type=int, help="worker processes for the frame passes")
     ret.set_defaults(func=_cmd_retarget)
+
+    ev = sub.add_parser("evaluate", help="metrics and plots of a retarget output folder (metrics.json, PNGs)")
+    ev.add_argument("dir", help="a folder written by handretarget retarget")
+    ev.add_argument("--stride", type=int, default=1, help="measure intersections every N-th frame (default 1)")
+    ev.add_argument("--self-stride", type=int, help="self intersection every N-th frame (default: --stride)")
+    ev.add_argument("--no-render", action="store_true", help="skip frames.png")
+    ev.set_defaults(func=_cmd_evaluate)
 
     bench = sub.add_parser("bench", help="print performance figures (without a sub-command: the whole retarget)")
     _bench_retarget_arguments(bench)

@@ -76,6 +76,11 @@ class RetargetResult:
     object_vertices: np.ndarray | None = field(default=None, repr=False)
     object_faces: np.ndarray | None = field(default=None, repr=False)
     object_poses: np.ndarray | None = field(default=None, repr=False)
+    table_pose: np.ndarray | None = field(default=None, repr=False)
+    table_half_extents: np.ndarray | None = field(default=None, repr=False)
+    contacts: object | None = field(default=None, repr=False)  # ContactTargets
+    source_contact_count: np.ndarray | None = field(default=None, repr=False)  # (T,) pairs before transfer
+    source_hand: tuple | None = field(default=None, repr=False)  # (frames (K,), vertices (K, V, 3), faces (F, 3))
 
     @property
     def n_frames(self) -> int:
@@ -101,8 +106,10 @@ class RetargetResult:
 
     def write(self, out_dir, rig_path=None) -> dict:
         """Write animation.usda (over ``rig_path`` when it is a USD file, else over a rig.usda
-        written here), result.json and animation.json into ``out_dir``; returns {name: path}.
-        Without curves (fit pass off) no animation.usda is written."""
+        written here), result.json, animation.json and scene.npz (object mesh and poses, table,
+        the frame's contact targets: what ``handretarget evaluate`` measures against) into
+        ``out_dir``; returns {name: path}. Without curves (fit pass off) no animation.usda is
+        written. result.json names the rig file (``rig_file``)."""
         from .export import write_animation_json, write_animation_usd
         from .rig.io import USD_SUFFIXES, load_rig, save_rig
 
@@ -121,8 +128,18 @@ class RetargetResult:
                                 fps=self.fps, n_frames=self.n_frames, object_vertices=self.object_vertices,
                                 object_faces=self.object_faces, object_poses=self.object_poses,
                                 metadata={"clip": self.clip_source, "summary": _plain(self.summary)})
+        if "rig.usda" not in paths and (rig_path is None
+                                         or Path(str(rig_path)).suffix.lower() not in USD_SUFFIXES):
+            rig_path = paths["rig.usda"] = out / "rig.usda"
+            save_rig(rig, rig_path)
+        if self.object_vertices is not None:
+            paths["scene.npz"] = out / "scene.npz"
+            self._write_scene(paths["scene.npz"])
         paths["result.json"] = out / "result.json"
-        text = json.dumps(self.to_dict(), indent=1, allow_nan=False)
+        doc = self.to_dict()
+        rig_file = Path(str(rig_path)).resolve()
+        doc["rig_file"] = rig_file.name if rig_file.parent == out.resolve() else str(rig_file)
+        text = json.dumps(doc, indent=1, allow_nan=False)
         with atomic_path(paths["result.json"], suffix=".json.tmp") as tmp:
             tmp.write_text(text, encoding="utf-8")
         paths["animation.json"] = out / "animation.json"
@@ -130,6 +147,27 @@ class RetargetResult:
             "rig": self.rig_name, "fps": self.fps, "dof_kinds": self.dof_kinds, "lower": self.lower,
             "upper": self.upper, "values": "spline" if self.curves else "frames"}))
         return paths
+
+
+    def _write_scene(self, path) -> None:
+        c = self.contacts
+        arrays = dict(object_vertices=self.object_vertices, object_faces=self.object_faces,
+                      object_poses=self.object_poses)
+        if self.table_pose is not None:
+            arrays.update(table_pose=self.table_pose, table_half_extents=self.table_half_extents)
+        if c is not None:
+            arrays.update(contact_frame_offsets=c.frame_offsets, contact_target_faces=c.target_faces,
+                          contact_target_barycentric=c.target_barycentric,
+                          contact_surface_points=c.object_points - c.gap[:, None] * c.object_normals,
+                          contact_object_normals=c.object_normals)
+        if self.source_contact_count is not None:
+            arrays["source_contact_count"] = self.source_contact_count
+        if self.source_hand is not None:
+            arrays.update(source_frames=self.source_hand[0], source_hand_vertices=self.source_hand[1],
+                          source_hand_faces=self.source_hand[2])
+        with atomic_path(path, suffix=".npz.tmp") as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez_compressed(fh, **arrays)
 
 
 def _plain(obj):
@@ -257,7 +295,19 @@ def retarget(clip: Clip, source_rig: Rig, target_rig: Rig, annotations: Annotati
         curves=curves, unresolved=trajectory.unresolved, timings=timings, counts=counts,
         contact_distance_mm=distance, contact_count=count, marker_error_mm=marker, summary=summary,
         config=config.to_dict(), clip_source=clip.source, rig=target_rig, object_vertices=clip.object_vertices,
-        object_faces=clip.object_faces, object_poses=clip.object_poses)
+        object_faces=clip.object_faces, object_poses=clip.object_poses, table_pose=clip.table_pose,
+        table_half_extents=clip.table_half_extents, contacts=trajectory.contacts,
+        source_contact_count=np.diff(trajectory.pairs.frame_offsets), source_hand=_source_snapshots(clip, count))
+
+
+def _source_snapshots(clip: Clip, contact_count: np.ndarray, n: int = 4):
+    """A few frames of the source hand for side-by-side renders: frames (K,) spread over the
+    contact frames (over all frames without contact), vertices (K, V, 3) float32, faces."""
+    pool = np.nonzero(contact_count > 0)[0]
+    if len(pool) == 0:
+        pool = np.arange(clip.n_frames)
+    frames = np.unique(pool[np.linspace(0, len(pool) - 1, min(n, len(pool))).round().astype(int)])
+    return frames, clip.hand_vertices[frames].astype(np.float32), clip.hand_faces
 
 
 def solved_figures(rig: Rig, trajectory) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

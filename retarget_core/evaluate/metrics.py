@@ -1,0 +1,399 @@
+"""Per-frame and per-clip quality metrics of a retargeted motion: contact error and coverage,
+marker error, smoothness per DOF, DOF limit violations, and a JSON summary of a clip.
+
+Inputs in SI units (metres, radians, seconds); reports in the units people read: millimetres
+for contact and marker distances, degrees (rotation DOFs) or centimetres (translation DOFs)
+per second squared / cubed for smoothness. Every summary is a small frozen dataclass with a
+``to_dict()`` that is JSON-serialisable (NaN -> None).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, is_dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from ..errors import InputError
+
+#: A source contact counts as realised on the target within this distance (metres).
+DEFAULT_COVERAGE_THRESHOLD = 0.005
+#: DOF values beyond a limit by more than this (radians or metres) count as violations.
+DEFAULT_LIMIT_TOLERANCE = 1e-6
+
+_RAD_TO_DEG = 180.0 / math.pi
+_M_TO_CM = 100.0
+
+
+def to_jsonable(value):
+    """``value`` with numpy scalars and arrays turned into Python numbers and lists, dataclasses
+    into dicts, tuples into lists and every non-finite float (NaN, inf) into None."""
+    if is_dataclass(value) and not isinstance(value, type):
+        if hasattr(value, "to_dict"):
+            return to_jsonable(value.to_dict())
+        return to_jsonable(asdict(value))
+    if isinstance(value, Mapping):
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, np.ndarray):
+        return [to_jsonable(v) for v in value.tolist()] if value.ndim else to_jsonable(value.item())
+    if isinstance(value, (list, tuple)):
+        return [to_jsonable(v) for v in value]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    return value
+
+
+def _points(a, element: str) -> np.ndarray:
+    a = np.asarray(a, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise InputError(f"must be an (N, 3) array, got shape {a.shape}", element=element)
+    return a
+
+
+def _mask(mask, n: int, element: str) -> np.ndarray:
+    if mask is None:
+        return np.ones(n, dtype=bool)
+    m = np.asarray(mask)
+    if m.shape != (n,):
+        raise InputError(f"must have shape ({n},), got {m.shape}", element=element)
+    return m.astype(bool)
+
+
+# ------------------------------------------------------------------------------------------
+# distances: contacts and markers
+# ------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class DistanceSummary:
+    """Distances of one frame summarised in millimetres over the ``n`` finite values
+    (NaN when there are none)."""
+
+    n: int
+    median_mm: float
+    mean_mm: float
+    max_mm: float
+
+    def to_dict(self) -> dict:
+        return to_jsonable(asdict(self))
+
+
+def summarize_distances(distances: np.ndarray, mask: np.ndarray | None = None) -> DistanceSummary:
+    """Median, mean and max (mm) of distances (N,) metres; ``mask`` (N,) bool selects which
+    to use (default all); NaN distances are left out."""
+    d = np.asarray(distances, dtype=np.float64).reshape(-1)
+    keep = _mask(mask, len(d), "mask") & np.isfinite(d)
+    d = d[keep] * 1000.0
+    if len(d) == 0:
+        return DistanceSummary(0, math.nan, math.nan, math.nan)
+    return DistanceSummary(int(len(d)), float(np.median(d)), float(d.mean()), float(d.max()))
+
+
+def point_distances(points_a: np.ndarray, points_b: np.ndarray) -> np.ndarray:
+    """Euclidean distances (N,) metres between paired points (N, 3) and (N, 3)."""
+    a = _points(points_a, "points_a")
+    b = _points(points_b, "points_b")
+    if a.shape != b.shape:
+        raise InputError(f"paired points differ in shape: {a.shape} vs {b.shape}", element="points_b")
+    return np.linalg.norm(a - b, axis=1)
+
+
+def contact_error(
+    target_points: np.ndarray, object_points: np.ndarray, mask: np.ndarray | None = None
+) -> DistanceSummary:
+    """Contact error of one frame: distances between the target hand's contact points (N, 3)
+    and their object points (N, 3), metres in, median / mean / max in mm out. ``mask`` (N,)
+    bool selects the contacts that exist on the target (e.g. the transferred ones)."""
+    return summarize_distances(point_distances(target_points, object_points), mask)
+
+
+def marker_error(
+    source_points: np.ndarray, target_points: np.ndarray, mask: np.ndarray | None = None
+) -> DistanceSummary:
+    """Marker error of one frame: distances between paired source and target marker points
+    (M, 3) metres; median / mean / max in mm. ``mask`` (M,) bool selects markers."""
+    return summarize_distances(point_distances(source_points, target_points), mask)
+
+
+@dataclass(frozen=True)
+class ContactCoverage:
+    """Share of a frame's source contacts realised on the target hand.
+
+    ``n_source``: source contacts; ``n_transferred``: of them carried onto the target;
+    ``n_realised``: transferred and within ``threshold_m`` of their object point;
+    ``share``: n_realised / n_source (NaN when the frame has no source contact)."""
+
+    n_source: int
+    n_transferred: int
+    n_realised: int
+    share: float
+    threshold_m: float
+
+    def to_dict(self) -> dict:
+        return to_jsonable(asdict(self))
+
+
+def contact_coverage(
+    distances: np.ndarray,
+    transferred: np.ndarray | None = None,
+    threshold_m: float = DEFAULT_COVERAGE_THRESHOLD,
+) -> ContactCoverage:
+    """Contact coverage of one frame.
+
+    distances (N,) metres: per source contact, the distance between its target-hand point and
+    its object point (any value, NaN included, for contacts that were not transferred);
+    transferred (N,) bool: which source contacts exist on the target (default all). A dropped
+    contact counts as not realised; a contact is realised when its distance <= threshold_m.
+    """
+    d = np.asarray(distances, dtype=np.float64).reshape(-1)
+    t = _mask(transferred, len(d), "transferred")
+    if not (threshold_m >= 0):
+        raise InputError(f"must be >= 0, got {threshold_m!r}", element="threshold_m")
+    realised = t & np.isfinite(d) & (d <= threshold_m)
+    n = len(d)
+    return ContactCoverage(
+        n_source=int(n),
+        n_transferred=int(t.sum()),
+        n_realised=int(realised.sum()),
+        share=float(realised.sum() / n) if n else math.nan,
+        threshold_m=float(threshold_m),
+    )
+
+
+# ------------------------------------------------------------------------------------------
+# DOF trajectories: smoothness and limits
+# ------------------------------------------------------------------------------------------
+def _dof_values(values, element: str = "values") -> np.ndarray:
+    v = np.asarray(values, dtype=np.float64)
+    if v.ndim == 1:
+        v = v[:, None]
+    if v.ndim != 2:
+        raise InputError(f"must be a (T, D) array, got shape {v.shape}", element=element)
+    return v
+
+
+def _rotation_mask(kinds, n_dofs: int) -> np.ndarray:
+    """kinds: sequence of "rotate" / "translate" strings, or a boolean mask (True = rotation)."""
+    k = np.asarray(kinds)
+    if k.shape != (n_dofs,):
+        raise InputError(f"must give one kind per DOF ({n_dofs}), got shape {k.shape}", element="kinds")
+    if k.dtype == bool:
+        return k.copy()
+    out = np.zeros(n_dofs, dtype=bool)
+    for i, kind in enumerate(k.tolist()):
+        if kind == "rotate":
+            out[i] = True
+        elif kind != "translate":
+            raise InputError(f"must be 'rotate' or 'translate', got {kind!r}", element=f"kinds[{i}]")
+    return out
+
+
+@dataclass(frozen=True)
+class Smoothness:
+    """Finite-difference acceleration and jerk per DOF.
+
+    All arrays (D,): ``accel_rms`` / ``accel_max`` (max of |a|) in deg/s^2 for rotation DOFs
+    and cm/s^2 for translation DOFs; ``jerk_rms`` / ``jerk_max`` in deg/s^3 or cm/s^3;
+    ``rotation`` True for rotation DOFs. NaN where the clip is too short (acceleration needs
+    3 frames, jerk 4) or a DOF has no finite difference."""
+
+    fps: float
+    rotation: np.ndarray
+    accel_rms: np.ndarray
+    accel_max: np.ndarray
+    jerk_rms: np.ndarray
+    jerk_max: np.ndarray
+
+    def units(self, order: int) -> list[str]:
+        """Unit of each DOF's value for derivative ``order`` (2: acceleration, 3: jerk)."""
+        return [("deg" if r else "cm") + f"/s^{order}" for r in self.rotation]
+
+    def to_dict(self, dof_names: Sequence[str] | None = None) -> dict:
+        names = list(dof_names) if dof_names is not None else [str(i) for i in range(len(self.rotation))]
+        if len(names) != len(self.rotation):
+            raise InputError(f"need {len(self.rotation)} DOF names, got {len(names)}", element="dof_names")
+        return to_jsonable(
+            {
+                "fps": self.fps,
+                "dofs": {
+                    n: {
+                        "kind": "rotate" if r else "translate",
+                        "accel_unit": ("deg" if r else "cm") + "/s^2",
+                        "jerk_unit": ("deg" if r else "cm") + "/s^3",
+                        "accel_rms": ar,
+                        "accel_max": am,
+                        "jerk_rms": jr,
+                        "jerk_max": jm,
+                    }
+                    for n, r, ar, am, jr, jm in zip(
+                        names, self.rotation, self.accel_rms, self.accel_max, self.jerk_rms, self.jerk_max
+                    )
+                },
+            }
+        )
+
+
+def _rms_max(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    n_dofs = x.shape[1]
+    rms = np.full(n_dofs, math.nan)
+    mx = np.full(n_dofs, math.nan)
+    for j in range(n_dofs):
+        col = x[:, j]
+        col = col[np.isfinite(col)]
+        if len(col):
+            rms[j] = math.sqrt(float(np.mean(col * col)))
+            mx[j] = float(np.abs(col).max())
+    return rms, mx
+
+
+def dof_derivatives(values: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Acceleration (T-2, D) and jerk (T-3, D) of DOF values (T, D) sampled at ``fps``, by
+    finite differences in the values' own units per s^2 / s^3: a[t] = (x[t+2] - 2 x[t+1] +
+    x[t]) fps^2 (centred on frame t+1), j[t] = (x[t+3] - 3 x[t+2] + 3 x[t+1] - x[t]) fps^3.
+    Exact for polynomials of degree 2 (acceleration) and 3 (jerk)."""
+    v = _dof_values(values)
+    if not (fps > 0 and math.isfinite(fps)):
+        raise InputError(f"must be a positive number, got {fps!r}", element="fps")
+    accel = np.diff(v, n=2, axis=0) * fps**2 if len(v) >= 3 else np.zeros((0, v.shape[1]))
+    jerk = np.diff(v, n=3, axis=0) * fps**3 if len(v) >= 4 else np.zeros((0, v.shape[1]))
+    return accel, jerk
+
+
+def dof_smoothness(values: np.ndarray, fps: float, kinds) -> Smoothness:
+    """Smoothness per DOF of a trajectory.
+
+    values (T, D): radians for rotation DOFs, metres for translation DOFs; fps: frames per
+    second; kinds: (D,) "rotate" / "translate" strings (as ``Dof.kind``) or a boolean mask
+    (True = rotation). Returns RMS and max of |acceleration| (deg/s^2, cm/s^2) and of |jerk|
+    (deg/s^3, cm/s^3) per DOF."""
+    v = _dof_values(values)
+    rotation = _rotation_mask(kinds, v.shape[1])
+    scale = np.where(rotation, _RAD_TO_DEG, _M_TO_CM)
+    accel, jerk = dof_derivatives(v, fps)
+    a_rms, a_max = _rms_max(accel * scale)
+    j_rms, j_max = _rms_max(jerk * scale)
+    return Smoothness(float(fps), rotation, a_rms, a_max, j_rms, j_max)
+
+
+@dataclass(frozen=True)
+class LimitViolations:
+    """DOF values outside [lower, upper] by more than ``tolerance``.
+
+    ``count``: frame x DOF entries in violation; ``frames``: frames with at least one;
+    ``per_dof`` (D,): violations per DOF; ``worst_excess``: the largest excess beyond a limit
+    (radians or metres, the DOF's own unit; 0 when none); ``worst_frame`` / ``worst_dof``:
+    where (-1 when none)."""
+
+    count: int
+    frames: int
+    per_dof: np.ndarray
+    worst_excess: float
+    worst_frame: int
+    worst_dof: int
+    tolerance: float
+
+    def to_dict(self, dof_names: Sequence[str] | None = None) -> dict:
+        out = to_jsonable(asdict(self))
+        if dof_names is not None and self.worst_dof >= 0:
+            out["worst_dof_name"] = str(list(dof_names)[self.worst_dof])
+        return out
+
+
+def dof_limit_violations(
+    values: np.ndarray, lower: np.ndarray, upper: np.ndarray, tolerance: float = DEFAULT_LIMIT_TOLERANCE
+) -> LimitViolations:
+    """Limit violations of a trajectory: values (T, D), lower (D,), upper (D,) in the DOFs'
+    units (radians / metres); an entry violates when it is below ``lower - tolerance`` or
+    above ``upper + tolerance``. NaN values are not violations."""
+    v = _dof_values(values)
+    lo = np.asarray(lower, dtype=np.float64).reshape(-1)
+    hi = np.asarray(upper, dtype=np.float64).reshape(-1)
+    if lo.shape != (v.shape[1],) or hi.shape != (v.shape[1],):
+        raise InputError(f"limits must have shape ({v.shape[1]},), got {lo.shape} and {hi.shape}", element="lower")
+    with np.errstate(invalid="ignore"):
+        excess = np.maximum(lo - v, v - hi)  # > 0 outside, NaN for NaN values
+    excess = np.where(np.isfinite(excess), excess, -np.inf)
+    bad = excess > tolerance
+    if bad.any():
+        f, j = np.unravel_index(int(np.argmax(excess)), excess.shape)
+        worst, worst_f, worst_j = float(excess[f, j]), int(f), int(j)
+    else:
+        worst, worst_f, worst_j = 0.0, -1, -1
+    return LimitViolations(
+        count=int(bad.sum()),
+        frames=int(bad.any(axis=1).sum()),
+        per_dof=bad.sum(axis=0).astype(np.int64),
+        worst_excess=worst,
+        worst_frame=worst_f,
+        worst_dof=worst_j,
+        tolerance=float(tolerance),
+    )
+
+
+# ------------------------------------------------------------------------------------------
+# per-clip summary
+# ------------------------------------------------------------------------------------------
+def summarize_series(values: np.ndarray) -> dict:
+    """Summary of one per-frame series (T,): frames, finite frames, mean, median, p95, min,
+    max and the frame of the max; NaN frames (unavailable / failed) are left out and counted.
+    JSON-serialisable; statistics are None when no frame is finite."""
+    x = np.asarray(values, dtype=np.float64).reshape(-1)
+    finite = np.isfinite(x)
+    out = {"frames": int(len(x)), "finite_frames": int(finite.sum())}
+    if finite.any():
+        y = x[finite]
+        out.update(
+            mean=float(y.mean()),
+            median=float(np.median(y)),
+            p95=float(np.percentile(y, 95)),
+            min=float(y.min()),
+            max=float(y.max()),
+            argmax_frame=int(np.flatnonzero(finite)[int(np.argmax(y))]),
+        )
+    else:
+        out.update(mean=None, median=None, p95=None, min=None, max=None, argmax_frame=None)
+    return out
+
+
+def intersection_series(results) -> dict[str, np.ndarray]:
+    """Per-frame arrays (T,) from a list of :class:`~.intersection.IntersectionResult`:
+    percent_of_hand, volume_m3, max_depth_m, n_vertices and n_clusters (NaN where the metric
+    was unavailable)."""
+    keys = ("percent_of_hand", "volume_m3", "max_depth_m", "n_vertices", "n_clusters")
+    out = {k: np.full(len(results), math.nan) for k in keys}
+    for i, r in enumerate(results):
+        if r.available:
+            for k in keys:
+                out[k][i] = float(getattr(r, k))
+    return out
+
+
+def summarize_clip(series: Mapping[str, object], *, fps: float | None = None, extra: Mapping | None = None) -> dict:
+    """Per-clip summary, JSON-serialisable (NaN -> None).
+
+    series: name -> per-frame values (T,) (e.g. "contact_median_mm", "coverage",
+    "marker_mean_mm") or a list of IntersectionResult (summarised per field, with the
+    reasons of unavailable frames); fps: stored when given; extra: added as is (converted).
+    """
+    out: dict = {}
+    if fps is not None:
+        out["fps"] = float(fps)
+    metrics: dict = {}
+    for name, values in series.items():
+        if isinstance(values, (list, tuple)) and values and hasattr(values[0], "available"):
+            per_field = intersection_series(values)
+            entry = {k: summarize_series(v) for k, v in per_field.items()}
+            reasons = sorted({r.reason for r in values if not r.available})
+            entry["unavailable_frames"] = int(sum(not r.available for r in values))
+            entry["unavailable_reasons"] = reasons
+            metrics[name] = entry
+        else:
+            metrics[name] = summarize_series(np.asarray(values, dtype=np.float64))
+    out["metrics"] = metrics
+    if extra:
+        out.update(to_jsonable(dict(extra)))
+    return to_jsonable(out)

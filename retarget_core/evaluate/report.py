@@ -1,0 +1,289 @@
+"""``handretarget evaluate DIR``: the metrics of one retarget output, as metrics.json and plots.
+
+Reads what :meth:`~retarget_core.retarget.RetargetResult.write` left in DIR (result.json, the
+rig file it names, scene.npz), poses the target hand at the spline samples of every frame and
+measures: hand-object, self and table intersection (percent of the hand's volume), contact error
+and coverage, marker error (from result.json), smoothness and DOF limit violations.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..files import atomic_path
+
+METRICS_FORMAT = "handretarget.metrics"
+METRICS_VERSION = 1
+MM = 1000.0
+COVERAGE_MM = 5.0
+
+
+@dataclass
+class Scene:
+    """scene.npz: object mesh (V, 3) m / faces (F, 3) and poses (T, 4, 4); optional table pose
+    (4, 4) and half extents (3,) m; contact targets split by frame offsets (T+1,)."""
+
+    object_vertices: np.ndarray
+    object_faces: np.ndarray
+    object_poses: np.ndarray
+    table_pose: np.ndarray | None
+    table_half_extents: np.ndarray | None
+    contact_frame_offsets: np.ndarray | None
+    contact_target_faces: np.ndarray | None
+    contact_target_barycentric: np.ndarray | None
+    contact_surface_points: np.ndarray | None
+    source_contact_count: np.ndarray | None
+
+
+def load_scene(path) -> Scene:
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except FileNotFoundError:
+        raise InputError("no scene.npz here (written by handretarget retarget since result version 1 with "
+                         "scene data; rerun the retarget)", source=str(path)) from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"not a readable scene file: {exc}", source=str(path)) from None
+    for key in ("object_vertices", "object_faces", "object_poses"):
+        if key not in data:
+            raise InputError(f"missing array {key!r}", source=str(path), element=key)
+    get = data.get
+    return Scene(data["object_vertices"], data["object_faces"], data["object_poses"], get("table_pose"),
+                 get("table_half_extents"), get("contact_frame_offsets"), get("contact_target_faces"),
+                 get("contact_target_barycentric"), get("contact_surface_points"), get("source_contact_count"))
+
+
+def load_output(folder):
+    """(RetargetResult, Rig, Scene) of a retarget output folder; clear errors for a missing or
+    foreign file."""
+    from ..retarget import load_result
+    from ..rig.io import load_rig
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError("not a folder", source=str(folder))
+    result = load_result(folder)
+    doc = json.loads((folder / "result.json").read_text(encoding="utf-8"))
+    rig_file = doc.get("rig_file")
+    if not rig_file:
+        raise InputError("result.json names no rig_file (written by an older version: rerun the retarget)",
+                         source=str(folder / "result.json"), element="rig_file")
+    rig_path = Path(rig_file) if Path(rig_file).is_absolute() else folder / rig_file
+    if not rig_path.exists():
+        raise InputError("the rig file named by result.json is missing", source=str(rig_path))
+    rig = load_rig(rig_path)
+    if rig.dof_names != result.dof_names:
+        raise InputError("the rig's DOFs differ from the result's", source=str(rig_path), element="dof_names")
+    scene = load_scene(folder / "scene.npz")
+    if len(scene.object_poses) != result.n_frames:
+        raise InputError(f"scene.npz has {len(scene.object_poses)} frames, result.json {result.n_frames}",
+                         source=str(folder / "scene.npz"), element="object_poses")
+    return result, rig, scene
+
+
+def _scene_extras(path) -> dict:
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in ("source_frames", "source_hand_vertices", "source_hand_faces") if k in z.files}
+
+
+def evaluate_output(folder, *, stride: int = 1, self_intersection_stride: int | None = None) -> dict:
+    """Per-frame metrics and their summary of the retarget output in ``folder`` (a dict ready
+    for metrics.json). ``stride``: measure intersections every stride-th frame (the others are
+    None); self intersection, the costliest, every ``self_intersection_stride``-th (default:
+    ``stride``). Contact, marker, smoothness and limit figures cover every frame."""
+    from ..mesh.surface_points import SurfacePoints
+    from .intersection import hand_object_intersection, mesh_volume, self_intersection, table_intersection
+    from .metrics import contact_coverage, dof_limit_violations, dof_smoothness, summarize_series
+
+    result, rig, scene = load_output(folder)
+    kin = rig.kinematics()
+    q = result.sampled()
+    n = result.n_frames
+    stride = max(1, int(stride))
+    self_stride = max(1, int(self_intersection_stride or stride))
+    faces = rig.surface.faces
+    hand_volume = mesh_volume(kin.skin(rig.rest_pose), faces)
+    kinds = ("hand_object", "self", "table")
+    percent = {k: np.full(n, np.nan) for k in kinds}
+    reasons = {}
+    contact_mm = np.full(n, np.nan)
+    coverage = np.full(n, np.nan)
+
+    for f in range(n):
+        verts = None
+        if f % stride == 0:
+            verts = kin.skin(q[f])
+            found = {"hand_object": hand_object_intersection(verts, faces, scene.object_vertices, scene.object_faces,
+                                                             scene.object_poses[f], hand_volume_m3=hand_volume)}
+            if scene.table_pose is not None:
+                found["table"] = table_intersection(verts, faces, scene.table_pose, scene.table_half_extents,
+                                                    hand_volume_m3=hand_volume)
+            if f % self_stride == 0:
+                found["self"] = self_intersection(verts, faces, hand_volume_m3=hand_volume)
+            for kind, r in found.items():
+                if r.available:
+                    percent[kind][f] = r.percent_of_hand
+                else:
+                    reasons[kind] = r.reason
+        if scene.contact_frame_offsets is not None:
+            sl = slice(int(scene.contact_frame_offsets[f]), int(scene.contact_frame_offsets[f + 1]))
+            if sl.stop > sl.start:
+                points = SurfacePoints(scene.contact_target_faces[sl], scene.contact_target_barycentric[sl])
+                d = np.linalg.norm(kin.points(q[f], kin.bind(points)) - scene.contact_surface_points[sl], axis=1)
+                contact_mm[f] = float(np.median(d)) * MM
+                total = int(scene.source_contact_count[f]) if scene.source_contact_count is not None else len(d)
+                # the source contacts the transfer dropped count as not realised
+                every = np.concatenate([d, np.full(max(total - len(d), 0), np.nan)])
+                transferred = np.arange(len(every)) < len(d)
+                coverage[f] = contact_coverage(every, transferred, COVERAGE_MM / MM).share
+    smooth = dof_smoothness(q, result.fps, list(result.dof_kinds))
+    limits = dof_limit_violations(q, result.lower, result.upper)
+    per_frame = {"intersection_percent": {k: percent[k] for k in kinds}, "contact_error_median_mm": contact_mm,
+                 "contact_coverage": coverage, "marker_error_mm": result.marker_error_mm}
+    contact_frames = np.isfinite(contact_mm)
+    summary = {
+        "contact_frames": int(contact_frames.sum()),
+        "contact_error_median_mm": float(np.median(contact_mm[contact_frames])) if contact_frames.any() else None,
+        "contact_coverage_mean": float(np.mean(coverage[np.isfinite(coverage)])) if np.isfinite(coverage).any() else None,
+        "marker_error_median_mm": summarize_series(result.marker_error_mm)["median"],
+        **{f"{k}_intersection_percent_mean": summarize_series(percent[k])["mean"] for k in kinds},
+        **{f"{k}_intersection_percent_max": summarize_series(percent[k])["max"] for k in kinds},
+        "accel_rms_median_deg_s2": float(np.nanmedian(smooth.accel_rms[smooth.rotation]))
+        if smooth.rotation.any() and np.isfinite(smooth.accel_rms[smooth.rotation]).any() else None,
+        "jerk_rms_median_deg_s3": float(np.nanmedian(smooth.jerk_rms[smooth.rotation]))
+        if smooth.rotation.any() and np.isfinite(smooth.jerk_rms[smooth.rotation]).any() else None,
+        "limit_violations": limits.count,
+    }
+    doc = {
+        "format": METRICS_FORMAT, "version": METRICS_VERSION, "rig": result.rig_name, "clip": result.clip_source,
+        "method": result.config.get("method", "contacts"), "fps": result.fps, "frames": n, "stride": stride,
+        "self_intersection_stride": self_stride, "hand_volume_m3": hand_volume, "summary": summary,
+        "per_frame": per_frame, "unavailable": reasons,
+        "series": {name: summarize_series(v) for name, v in
+                   [("contact_error_median_mm", contact_mm), ("contact_coverage", coverage),
+                    ("marker_error_mm", result.marker_error_mm)]
+                   + [(f"{k}_intersection_percent", percent[k]) for k in kinds]},
+        "smoothness": smooth.to_dict(result.dof_names),
+        "limits": limits.to_dict(result.dof_names),
+    }
+    return doc
+
+
+def write_plots(doc: dict, out_dir) -> dict:
+    """intersection.png (percent of the hand's volume over time per kind, like the paper's
+    intersection figure) and contact_error.png (median contact error and coverage over time)
+    into ``out_dir``; returns {name: path}."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    n, fps = doc["frames"], doc["fps"]
+    t = np.arange(n) / fps
+    paths = {}
+
+    def series(values):
+        return np.array([np.nan if v is None else v for v in values], dtype=float)
+
+    fig, ax = plt.subplots(figsize=(8, 3.2), dpi=110)
+    labels = {"hand_object": "hand-object", "self": "self", "table": "table"}
+    for kind, values in doc["per_frame"]["intersection_percent"].items():
+        y = series(values)
+        keep = np.isfinite(y)
+        if keep.any():
+            ax.plot(t[keep], y[keep], label=labels.get(kind, kind), lw=1.4)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("intersection (% of hand volume)")
+    ax.set_title(f"{doc['rig']} ({doc['method']}): intersection")
+    ax.legend(loc="upper right")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    paths["intersection.png"] = out / "intersection.png"
+    _save(fig, paths["intersection.png"])
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(8, 3.2), dpi=110)
+    err = series(doc["per_frame"]["contact_error_median_mm"])
+    keep = np.isfinite(err)
+    ax.plot(t[keep], err[keep], ".", ms=3, color="C3", label="median contact error (mm)")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("contact error (mm)")
+    ax2 = ax.twinx()
+    cov = series(doc["per_frame"]["contact_coverage"])
+    ax2.plot(t[np.isfinite(cov)], 100 * cov[np.isfinite(cov)], ".", ms=3, color="C0", label="coverage (%)")
+    ax2.set_ylabel(f"coverage within {COVERAGE_MM:g} mm (%)")
+    ax2.set_ylim(0, 105)
+    ax.set_title(f"{doc['rig']} ({doc['method']}): contacts")
+    ax.grid(alpha=0.3)
+    fig.legend(loc="upper right")
+    fig.tight_layout()
+    paths["contact_error.png"] = out / "contact_error.png"
+    _save(fig, paths["contact_error.png"])
+    plt.close(fig)
+    return paths
+
+
+def _save(fig, path) -> None:
+    with atomic_path(path, suffix=".png.tmp") as tmp:
+        fig.savefig(tmp, format="png")
+
+
+def render_frames(folder, out_path, size: int = 320) -> Path | None:
+    """frames.png: the source hand (left) and the target hand (right) with the object at the
+    few frames scene.npz keeps; None when it keeps none."""
+    from PIL import Image
+
+    from ..render.raster import frame_camera, render_meshes
+
+    folder = Path(folder)
+    result, rig, scene = load_output(folder)
+    extras = _scene_extras(folder / "scene.npz")
+    if "source_frames" not in extras:
+        return None
+    kin = rig.kinematics()
+    q = result.sampled()
+    rows = []
+    for k, f in enumerate(extras["source_frames"]):
+        pose = scene.object_poses[f]
+        obj = scene.object_vertices @ pose[:3, :3].T + pose[:3, 3]
+        source = extras["source_hand_vertices"][k].astype(np.float64)
+        target = kin.skin(q[f])
+        camera = frame_camera(np.vstack([source, target, obj]), size=(size, size))
+        tiles = []
+        for hand, hand_faces in ((source, extras["source_hand_faces"]), (target, rig.surface.faces)):
+            image = render_meshes([(hand, hand_faces, (0.85, 0.68, 0.58)), (obj, scene.object_faces, (0.55, 0.7, 0.85))],
+                                  camera, (size, size))
+            tiles.append(np.asarray(image))
+        rows.append(np.concatenate(tiles, axis=1))
+    picture = Image.fromarray(np.concatenate(rows, axis=0).astype(np.uint8))
+    out_path = Path(out_path)
+    with atomic_path(out_path, suffix=".png.tmp") as tmp:
+        picture.save(tmp, format="PNG")
+    return out_path
+
+
+def write_evaluation(folder, *, stride: int = 1, self_intersection_stride: int | None = None,
+                     render: bool = True) -> dict:
+    """Evaluate the retarget output ``folder`` and write metrics.json, intersection.png,
+    contact_error.png and (``render``) frames.png into it; returns {name: path}."""
+    from .metrics import to_jsonable
+
+    folder = Path(folder)
+    doc = evaluate_output(folder, stride=stride, self_intersection_stride=self_intersection_stride)
+    paths = {"metrics.json": folder / "metrics.json"}
+    text = json.dumps(to_jsonable(doc), indent=1, allow_nan=False)
+    with atomic_path(paths["metrics.json"], suffix=".json.tmp") as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    paths.update(write_plots(to_jsonable(doc), folder))
+    if render:
+        frames = render_frames(folder, folder / "frames.png")
+        if frames is not None:
+            paths["frames.png"] = frames
+    return paths
