@@ -502,6 +502,17 @@ def _cmd_evaluate(args) -> int:
     return 0
 
 
+def _cmd_grid(args) -> int:
+    from .evaluate.grid import run_grid
+
+    paths = run_grid(args.out, targets=args.target, clips=args.clip, methods=args.method or None,
+                     frames=args.frames, workers=args.workers, stride=args.stride)
+    print(Path(paths["grid.md"]).read_text(encoding="utf-8"))
+    for path in paths.values():
+        print(f"wrote {path}")
+    return 0
+
+
 def _cmd_bench_transfer(args) -> int:
     from .benchmarks.transfer import run_transfer_benchmark
 
@@ -670,6 +681,18 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--self-stride", type=int, help="self intersection every N-th frame (default: --stride)")
     ev.add_argument("--no-render", action="store_true", help="skip frames.png")
     ev.set_defaults(func=_cmd_evaluate)
+
+    grid = sub.add_parser("grid", help="every demo target x demo clip with our method and both baselines: "
+                                       "table (md, csv) and HTML report; reruns reuse finished cells")
+    grid.add_argument("--out", required=True, help="output folder")
+    grid.add_argument("--target", action="append", help="only this demo hand (repeatable)")
+    grid.add_argument("--clip", action="append", help="only this demo clip (repeatable)")
+    grid.add_argument("--method", action="append", choices=["contacts", "fingertips", "keyvectors"],
+                      help="only this method (repeatable)")
+    grid.add_argument("--frames", type=int, default=120, help="frames per clip window (default 120)")
+    grid.add_argument("--stride", type=int, default=4, help="intersections every N-th frame (default 4)")
+    grid.add_argument("--workers", type=int, help="worker processes per retarget")
+    grid.set_defaults(func=_cmd_grid)
 
     bench = sub.add_parser("bench", help="print performance figures (without a sub-command: the whole retarget)")
     _bench_retarget_arguments(bench)

@@ -176,7 +176,10 @@ def test_finger_pushed_into_the_palm():
 
 @pytest.mark.parametrize(
     "mesh",
-    [trimesh.creation.icosphere(subdivisions=4, radius=0.03), trimesh.creation.box(extents=(0.04, 0.03, 0.02)).subdivide().subdivide()],
+    [
+        trimesh.creation.icosphere(subdivisions=4, radius=0.03),
+        trimesh.creation.box(extents=(0.04, 0.03, 0.02)).subdivide().subdivide(),
+    ],
     ids=["sphere", "box"],
 )
 def test_clean_closed_meshes_have_no_self_intersection(mesh):
@@ -245,7 +248,8 @@ def test_demo_hand_on_the_table(source_hand):
     assert r.max_depth_m == pytest.approx(depth, abs=1e-9)
     assert 0 < r.percent_of_hand < 1  # measured 0.069 %
     assert table_intersection(v, faces, table_pose_with_top_at(low), TABLE_HALF).n_vertices == 0
-    assert box_signed_distance(np.array([[0.0, 0.1, low - 0.001]]), table_pose_with_top_at(low), TABLE_HALF)[0] == pytest.approx(-0.001)
+    below = np.array([[0.0, 0.1, low - 0.001]])
+    assert box_signed_distance(below, table_pose_with_top_at(low), TABLE_HALF)[0] == pytest.approx(-0.001)
 
 
 # ------------------------------------------------------------------------------------------

@@ -1,0 +1,217 @@
+"""``handretarget grid``: every demo target x every demo clip x (our method, both baselines).
+
+Each cell is a normal retarget output folder (``DIR/cells/<hand>/<clip>/<method>/``) evaluated
+in place (metrics.json, plots); a cell whose metrics.json exists is reused, so an interrupted
+grid resumes where it stopped. The table (grid.md, grid.csv) and a static HTML report
+(index.html, linking each cell's plots) are rebuilt from the cells' metrics every run.
+"""
+
+from __future__ import annotations
+
+import csv
+import html
+import io
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..files import atomic_path
+
+METHODS = ("contacts", "fingertips", "keyvectors")
+#: the columns of the grid table: (header, metrics.json summary key)
+COLUMNS = (
+    ("contact error median (mm)", "contact_error_median_mm"),
+    ("coverage within 5 mm", "contact_coverage_mean"),
+    ("hand-object intersection mean (%)", "hand_object_intersection_percent_mean"),
+    ("self intersection mean (%)", "self_intersection_percent_mean"),
+    ("table intersection mean (%)", "table_intersection_percent_mean"),
+    ("marker error median (mm)", "marker_error_median_mm"),
+    ("jerk RMS median (deg/s^3)", "jerk_rms_median_deg_s3"),
+    ("limit violations", "limit_violations"),
+)
+HUMAN_LIKE = ("source_human", "human_alt", "witch")
+
+
+def run_grid(out, *, targets=None, clips=None, methods=METHODS, frames: int = 120, workers: int | None = None,
+             stride: int = 4, log=print) -> dict:
+    """Run (or resume) the grid into ``out``; returns {name: path} of the table and report."""
+    from ..clip import load_clip
+    from ..clip.demo import DEMO_CLIPS, grasp_window, make_demo_clip, source_rig
+    from ..pairing import pair_contacts
+    from ..retarget import retarget
+    from ..rig.demo_hands import DEMO_HANDS, demo_hand
+    from ..solve.config import load_config
+    from ..transfer.propose import propose_annotations
+    from .report import write_evaluation
+
+    out = Path(out)
+    targets = list(targets or DEMO_HANDS)
+    clips = list(clips or DEMO_CLIPS)
+    methods = list(methods or METHODS)
+    for name in targets:
+        if name not in DEMO_HANDS:
+            raise InputError(f"unknown demo hand {name!r} (known: {', '.join(DEMO_HANDS)})", element="targets")
+    for name in clips:
+        if name not in DEMO_CLIPS:
+            raise InputError(f"unknown demo clip {name!r} (known: {', '.join(DEMO_CLIPS)})", element="clips")
+    for m in methods:
+        if m not in METHODS:
+            raise InputError(f"unknown method {m!r} (known: {', '.join(METHODS)})", element="methods")
+    source = source_rig()
+    clip_dir = out / "clips"
+    clip_dir.mkdir(parents=True, exist_ok=True)
+    windows, pairs = {}, {}
+
+    def clip_window(name):
+        if name not in windows:
+            path = clip_dir / f"{name}_grasp.npz"
+            if path.is_file():
+                windows[name] = load_clip(path)
+            else:
+                windows[name] = grasp_window(make_demo_clip(name, rig=source), frames)
+                windows[name].save(path)
+            pairs[name] = pair_contacts(windows[name])
+        return windows[name], pairs[name]
+
+    for hand in targets:
+        target = None
+        for clip_name in clips:
+            for method in methods:
+                cell = out / "cells" / hand / clip_name / method
+                if (cell / "metrics.json").is_file():
+                    continue
+                if target is None:
+                    target = demo_hand(hand)
+                    annotations = propose_annotations(source, target)
+                clip, clip_pairs = clip_window(clip_name)
+                overrides = {"method": method}
+                if workers:
+                    overrides["workers"] = workers
+                t0 = time.perf_counter()
+                try:
+                    result = retarget(clip, source, target, annotations, load_config(None, "default", overrides),
+                                      pairs=clip_pairs)
+                    result.write(cell)
+                    write_evaluation(cell, stride=stride)
+                except InputError as err:  # a cell that cannot run is reported in the table, not hidden
+                    cell.mkdir(parents=True, exist_ok=True)
+                    (cell / "error.txt").write_text(str(err) + "\n", encoding="utf-8")
+                    log(f"{hand} / {clip_name} / {method}: error: {err}")
+                    continue
+                log(f"{hand} / {clip_name} / {method}: {time.perf_counter() - t0:.0f} s")
+    return write_grid_tables(out, targets, clips, methods)
+
+
+def _cells(out: Path, targets, clips, methods):
+    rows = []
+    for hand in targets:
+        for clip_name in clips:
+            for method in methods:
+                cell = out / "cells" / hand / clip_name / method
+                summary, error = None, None
+                if (cell / "metrics.json").is_file():
+                    summary = json.loads((cell / "metrics.json").read_text(encoding="utf-8"))["summary"]
+                elif (cell / "error.txt").is_file():
+                    error = (cell / "error.txt").read_text(encoding="utf-8").strip()
+                rows.append(dict(hand=hand, clip=clip_name, method=method, cell=cell, summary=summary, error=error))
+    return rows
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "n/a"
+    if isinstance(v, int):
+        return str(v)
+    return f"{v:.3g}" if abs(v) < 1000 else f"{v:.0f}"
+
+
+def comparison(rows, hand_filter=HUMAN_LIKE) -> dict:
+    """Per method over the human-like targets: the median over cells of the contact error and
+    of the mean hand-object intersection, and ours / baseline ratios."""
+    per = {}
+    for r in rows:
+        if r["summary"] is None or r["hand"] not in hand_filter:
+            continue
+        per.setdefault(r["method"], {"contact": [], "object": []})
+        c = r["summary"].get("contact_error_median_mm")
+        o = r["summary"].get("hand_object_intersection_percent_mean")
+        if c is not None:
+            per[r["method"]]["contact"].append(c)
+        if o is not None:
+            per[r["method"]]["object"].append(o)
+    out = {m: {"contact_error_median_mm": float(np.median(v["contact"])) if v["contact"] else None,
+               "hand_object_intersection_percent": float(np.median(v["object"])) if v["object"] else None,
+               "cells": len(v["contact"])} for m, v in per.items()}
+    ours = out.get("contacts", {}).get("contact_error_median_mm")
+    for m in out:
+        if m != "contacts" and ours and out[m]["contact_error_median_mm"] is not None:
+            out[m]["contact_error_ratio_to_ours"] = out[m]["contact_error_median_mm"] / ours
+    return out
+
+
+def write_grid_tables(out, targets, clips, methods) -> dict:
+    """grid.md, grid.csv, comparison.json and index.html from the cells under ``out``."""
+    out = Path(out)
+    rows = _cells(out, targets, clips, methods)
+    header = ["hand", "clip", "method"] + [c[0] for c in COLUMNS]
+    md = ["| " + " | ".join(header) + " |", "|" + "---|" * 3 + "---:|" * len(COLUMNS)]
+    buf = io.StringIO()
+    writer = csv.writer(buf)
+    writer.writerow(["hand", "clip", "method"] + [c[1] for c in COLUMNS] + ["error"])
+    for r in rows:
+        values = [r["summary"].get(key) if r["summary"] else None for _, key in COLUMNS]
+        md.append("| " + " | ".join([r["hand"], r["clip"], r["method"]] + [_fmt(v) for v in values]) + " |")
+        writer.writerow([r["hand"], r["clip"], r["method"]] + ["" if v is None else v for v in values]
+                        + [r["error"] or ""])
+    comp = comparison(rows)
+    md += ["", "Over the human-like targets (" + ", ".join(HUMAN_LIKE) + "), median over cells:", "",
+           "| method | cells | contact error (mm) | hand-object intersection (%) | contact error / ours |",
+           "|---|---:|---:|---:|---:|"]
+    for m, v in comp.items():
+        md.append(f"| {m} | {v['cells']} | {_fmt(v['contact_error_median_mm'])} | "
+                  f"{_fmt(v['hand_object_intersection_percent'])} | {_fmt(v.get('contact_error_ratio_to_ours'))} |")
+    paths = {"grid.md": out / "grid.md", "grid.csv": out / "grid.csv", "comparison.json": out / "comparison.json",
+             "index.html": out / "index.html"}
+    for name, text in (("grid.md", "\n".join(md) + "\n"), ("grid.csv", buf.getvalue()),
+                       ("comparison.json", json.dumps(comp, indent=1)), ("index.html", _html(out, rows, header, comp))):
+        with atomic_path(paths[name]) as tmp:
+            tmp.write_text(text, encoding="utf-8")
+    return paths
+
+
+def _html(out: Path, rows, header, comp) -> str:
+    esc = html.escape
+    parts = ["<!doctype html><html><head><meta charset='utf-8'><title>Hand Retarget grid</title>",
+             "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}"
+             "td,th{border:1px solid #ccc;padding:3px 6px;text-align:right}td:nth-child(-n+3){text-align:left}"
+             "img{max-width:420px;margin:4px}section{margin-top:2em}</style></head><body>",
+             "<h1>Hand Retarget: demo targets x demo clips</h1>",
+             "<h2>Our method against the baselines (human-like targets)</h2><table><tr>"
+             "<th>method</th><th>cells</th><th>contact error (mm)</th><th>hand-object intersection (%)</th>"
+             "<th>contact error / ours</th></tr>"]
+    for m, v in comp.items():
+        parts.append(f"<tr><td>{esc(m)}</td><td>{v['cells']}</td><td>{_fmt(v['contact_error_median_mm'])}</td>"
+                     f"<td>{_fmt(v['hand_object_intersection_percent'])}</td>"
+                     f"<td>{_fmt(v.get('contact_error_ratio_to_ours'))}</td></tr>")
+    parts.append("</table><h2>Every cell</h2><table><tr>" + "".join(f"<th>{esc(h)}</th>" for h in header) + "</tr>")
+    for r in rows:
+        values = [r["summary"].get(key) if r["summary"] else None for _, key in COLUMNS]
+        anchor = f"{r['hand']}-{r['clip']}-{r['method']}"
+        parts.append(f"<tr><td><a href='#{esc(anchor)}'>{esc(r['hand'])}</a></td><td>{esc(r['clip'])}</td>"
+                     f"<td>{esc(r['method'])}</td>" + "".join(f"<td>{_fmt(v)}</td>" for v in values) + "</tr>")
+    parts.append("</table>")
+    for r in rows:
+        anchor = f"{r['hand']}-{r['clip']}-{r['method']}"
+        parts.append(f"<section id='{esc(anchor)}'><h3>{esc(r['hand'])} / {esc(r['clip'])} / {esc(r['method'])}</h3>")
+        if r["error"]:
+            parts.append(f"<p>error: {esc(r['error'])}</p>")
+        for name in ("intersection.png", "contact_error.png", "frames.png"):
+            if (r["cell"] / name).is_file():
+                rel = (r["cell"] / name).relative_to(out).as_posix()
+                parts.append(f"<img src='{esc(rel)}' alt='{esc(name)}'>")
+        parts.append("</section>")
+    parts.append("</body></html>")
+    return "\n".join(parts)
