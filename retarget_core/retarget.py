@@ -72,6 +72,7 @@ class RetargetResult:
     summary: dict
     config: dict
     clip_source: str = ""
+    rig_file: str = ""  # the rig file the output was written over (relative to it when inside)
     rig: Rig | None = field(default=None, repr=False)
     object_vertices: np.ndarray | None = field(default=None, repr=False)
     object_faces: np.ndarray | None = field(default=None, repr=False)
@@ -97,6 +98,7 @@ class RetargetResult:
             for c in self.curves]
         return _plain({
             "format": RESULT_FORMAT, "version": RESULT_VERSION, "rig": self.rig_name, "clip": self.clip_source,
+            "rig_file": self.rig_file,
             "summary": self.summary, "timings": self.timings, "fps": self.fps, "dof_names": self.dof_names,
             "dof_kinds": self.dof_kinds, "lower": self.lower, "upper": self.upper, "times": self.times, "q": self.q,
             "curves": curves, "unresolved": self.unresolved,
@@ -136,10 +138,9 @@ class RetargetResult:
             paths["scene.npz"] = out / "scene.npz"
             self._write_scene(paths["scene.npz"])
         paths["result.json"] = out / "result.json"
-        doc = self.to_dict()
         rig_file = Path(str(rig_path)).resolve()
-        doc["rig_file"] = rig_file.name if rig_file.parent == out.resolve() else str(rig_file)
-        text = json.dumps(doc, indent=1, allow_nan=False)
+        self.rig_file = rig_file.name if rig_file.parent == out.resolve() else str(rig_file)
+        text = json.dumps(self.to_dict(), indent=1, allow_nan=False)
         with atomic_path(paths["result.json"], suffix=".json.tmp") as tmp:
             tmp.write_text(text, encoding="utf-8")
         paths["animation.json"] = out / "animation.json"
@@ -217,7 +218,8 @@ def load_result(path) -> RetargetResult:
             unresolved=np.array(doc["unresolved"], dtype=bool).reshape(q.shape), timings=doc["timings"],
             counts=doc["counts"], contact_distance_mm=arr("contact_distance_mm"),
             contact_count=np.array(doc["contact_count"], dtype=np.int64), marker_error_mm=arr("marker_error_mm"),
-            summary=doc["summary"], config=doc["config"], clip_source=doc.get("clip", ""))
+            summary=doc["summary"], config=doc["config"], clip_source=doc.get("clip", ""),
+            rig_file=doc.get("rig_file", ""))
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(f"malformed result: {exc!r}", source=str(path)) from None
 

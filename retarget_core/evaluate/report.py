@@ -69,8 +69,7 @@ def load_output(folder):
     if not folder.is_dir():
         raise InputError("not a folder", source=str(folder))
     result = load_result(folder)
-    doc = json.loads((folder / "result.json").read_text(encoding="utf-8"))
-    rig_file = doc.get("rig_file")
+    rig_file = result.rig_file
     if not rig_file:
         raise InputError("result.json names no rig_file (written by an older version: rerun the retarget)",
                          source=str(folder / "result.json"), element="rig_file")
