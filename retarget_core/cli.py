@@ -513,6 +513,17 @@ def _cmd_grid(args) -> int:
     return 0
 
 
+def _cmd_compare(args) -> int:
+    from .evaluate.compare import run_compare
+
+    paths = run_compare(args.clip, args.rig, Path(args.out), annotations=args.annotations, workers=args.workers,
+                        stride=args.stride, frames=args.frames, overrides=_parse_sets(args.set))
+    print(Path(paths["compare.md"]).read_text(encoding="utf-8"))
+    for path in paths.values():
+        print(f"wrote {path}")
+    return 0
+
+
 def _cmd_bench_transfer(args) -> int:
     from .benchmarks.transfer import run_transfer_benchmark
 
@@ -693,6 +704,18 @@ def build_parser() -> argparse.ArgumentParser:
     grid.add_argument("--stride", type=int, default=4, help="intersections every N-th frame (default 4)")
     grid.add_argument("--workers", type=int, help="worker processes per retarget")
     grid.set_defaults(func=_cmd_grid)
+
+    cmp_ = sub.add_parser("compare", help="one clip onto two variants of a hand: metrics side by side, "
+                                          "per-frame differences, worst frames rendered")
+    cmp_.add_argument("--clip", required=True, help="clip .npz")
+    cmp_.add_argument("--rig", action="append", required=True, help="a rig file or demo:NAME[@RES] (give two)")
+    cmp_.add_argument("--annotations", action="append", help="annotations per rig (default: proposed)")
+    cmp_.add_argument("--out", required=True, help="output folder")
+    cmp_.add_argument("--frames", type=int, help="only a window of this many frames around the first contact")
+    cmp_.add_argument("--stride", type=int, default=4, help="intersections every N-th frame (default 4)")
+    cmp_.add_argument("--set", action="append", metavar="KEY=VALUE", help="configuration override (repeatable)")
+    cmp_.add_argument("--workers", type=int, help="worker processes per retarget")
+    cmp_.set_defaults(func=_cmd_compare)
 
     bench = sub.add_parser("bench", help="print performance figures (without a sub-command: the whole retarget)")
     _bench_retarget_arguments(bench)

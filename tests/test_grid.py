@@ -48,3 +48,21 @@ def test_grid_table_marks_missing_cells_and_names_unknown_inputs(grid, tmp_path)
         run_grid(tmp_path, targets=["wizard"])
     with pytest.raises(InputError, match="unknown method"):
         run_grid(tmp_path, targets=["alien"], methods=["telepathy"])
+
+
+def test_compare_two_outputs_side_by_side(grid, tmp_path):
+    from retarget_core.evaluate.compare import compare_outputs
+
+    out, _ = grid
+    cells = out / "cells" / "prosthetic_2dof" / "box_pinch"
+    paths = compare_outputs(cells / "contacts", cells / "keyvectors", tmp_path / "cmp", worst=2)
+    report = json.loads(paths["compare.json"].read_text())
+    ours = json.loads((cells / "contacts" / "metrics.json").read_text())["summary"]
+    assert report["summary"][report["names"][0]] == ours
+    assert 1 <= len(report["worst_frames"]) <= 2
+    for name in ("difference.png", "worst_frames.png"):
+        assert paths[name].read_bytes()[:4] == b"\x89PNG"
+    text = paths["compare.md"].read_text()
+    assert "| contact_error_median_mm |" in text
+    with pytest.raises(InputError, match="metrics.json"):
+        compare_outputs(cells / "contacts", tmp_path, tmp_path / "cmp2")
