@@ -197,6 +197,48 @@ def _cmd_clip_render(args) -> int:
     return 0
 
 
+def _cmd_clip_substitute(args) -> int:
+    import numpy as np
+
+    from .clip import load_clip
+    from .clip.substitute import substitute_object
+
+    clip = load_clip(args.clip)
+    if args.object.startswith("demo:"):
+        from .clip.objects import OBJECT_NAMES, make_object
+
+        name = args.object[len("demo:"):]
+        if name not in OBJECT_NAMES:
+            raise _UsageError(f"unknown demo object {name!r} (known: {', '.join(OBJECT_NAMES)})")
+        obj = make_object(name)
+        vertices, faces = obj.vertices, obj.faces
+    else:
+        import trimesh
+
+        from .errors import InputError
+
+        try:
+            mesh = trimesh.load(args.object, force="mesh", process=False)
+        except Exception as exc:  # trimesh raises many kinds for unreadable files
+            raise InputError(f"not a readable mesh: {exc}", source=args.object) from None
+        vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+        name = Path(args.object).stem
+    if args.scale:
+        try:
+            scale = [float(x) for x in args.scale.split(",")]
+        except ValueError:
+            raise _UsageError(f"--scale must be one or three numbers, got {args.scale!r}") from None
+        if len(scale) not in (1, 3) or min(scale) <= 0:
+            raise _UsageError(f"--scale must be one or three positive numbers, got {args.scale!r}")
+        vertices = np.asarray(vertices, dtype=float) * np.array(scale if len(scale) == 3 else scale * 3)
+    new, report = substitute_object(clip, vertices, faces, name=name, max_distance=args.max_distance)
+    new.save(args.out)
+    print(f"{args.clip}: object {clip.object_name} -> {new.object_name}; labelled vertices {report['labelled_vertices']}, "
+          f"traced {report['traced']}, dropped {report['dropped']} (farther than {args.max_distance * 100:g} cm)")
+    print(f"wrote {args.out}")
+    return 0
+
+
 def _cmd_clip_pair(args) -> int:
     import numpy as np
 
@@ -628,6 +670,13 @@ def build_parser() -> argparse.ArgumentParser:
     c_render.add_argument("--view", default="three_quarter", choices=["front", "top", "side", "three_quarter"])
     c_render.add_argument("--size", default="320x320", help="panel size WxH in pixels")
     c_render.set_defaults(func=_cmd_clip_render)
+    c_sub = clip_sub.add_parser("substitute", help="replace the clip's object, tracing its contacts onto the new one")
+    c_sub.add_argument("clip")
+    c_sub.add_argument("--object", required=True, help="a mesh file (OBJ, PLY, STL, ...) or demo:NAME")
+    c_sub.add_argument("--scale", help="scale the new object: S or SX,SY,SZ (in its own frame)")
+    c_sub.add_argument("--max-distance", type=float, default=0.02, help="metres a contact may be traced (0.02)")
+    c_sub.add_argument("--out", required=True, help="the new clip .npz")
+    c_sub.set_defaults(func=_cmd_clip_substitute)
     c_pair = clip_sub.add_parser("pair", help="dense contact pairing: report paired and discarded contacts")
     c_pair.add_argument("paths", nargs="+")
     c_pair.add_argument("--epsilon", type=float, default=0.015, help="largest pair distance in metres")
