@@ -248,3 +248,56 @@ def test_identity_retarget_recovers_the_capture(setup):
         assert np.sqrt(np.mean(np.square(tip_err))) < 0.002, tip_err
         assert np.median(tip_err) < 0.001, tip_err
     assert not traj.reports["full"].failed
+
+
+def test_scale_finger_markers_keeps_the_source_proportions_and_stretches_the_witch(setup):
+    """``markers.scale_fingers``: onto the source's own rig with every target marker on its
+    source point every marker stays put (with the proposed target areas, whose centroids are
+    not the source points, they move under 2 mm); onto the witch each finger link keeps its direction per frame and takes the witch's rest length
+    ratio, and markers off the finger chains do not move."""
+    from retarget_core.rig.demo_hands import demo_hand
+    from retarget_core.solve.targets import FINGER_CHAIN, scale_finger_markers
+
+    rig, clip, annotations = setup[:3]
+    import dataclasses
+
+    markers = marker_targets(clip, rig, rig, annotations)
+    on_source = dataclasses.replace(markers, target_faces=markers.source_faces,
+                                    target_barycentric=markers.source_barycentric,
+                                    pair_target=np.arange(len(markers.pair_target)))
+    same = scale_finger_markers(on_source, rig, rig)
+    np.testing.assert_allclose(same.source_positions, markers.source_positions, atol=1e-12)
+    near = scale_finger_markers(markers, rig, rig)
+    assert 0 < np.abs(near.source_positions - markers.source_positions).max() < 0.002
+
+    witch = demo_hand("witch", 0.004)
+    w_markers = marker_targets(clip, rig, witch, propose_annotations(rig, witch))
+    scaled = scale_finger_markers(w_markers, rig, witch)
+    names = np.array(w_markers.names, dtype=object)
+    kin = witch.kinematics()
+    t_rest = kin.points(witch.rest_pose, kin.bind(SurfacePoints(w_markers.target_faces, w_markers.target_barycentric)))
+
+    def at(x, name):  # (T, 3) or (3,) pair-weighted centroid of a marker
+        s = np.flatnonzero(names == name)
+        w = w_markers.pair_weight[s] / w_markers.pair_weight[s].sum()
+        return (x[..., s, :] * w[:, None]).sum(axis=-2)
+
+    s_kin = rig.kinematics()
+    s_rest = s_kin.points(rig.rest_pose, s_kin.bind(SurfacePoints(w_markers.source_faces, w_markers.source_barycentric)))
+    on_chain = np.zeros(len(names), bool)
+    checked = 0
+    for finger in ("Thumb", "Index", "Middle", "Ring", "Pinky"):
+        chain = [finger + p for p in FINGER_CHAIN if finger + p in set(names)]
+        on_chain |= np.isin(names, chain[1:])
+        np.testing.assert_allclose(at(scaled.source_positions, chain[0]), at(w_markers.source_positions, chain[0]))
+        for a, b in zip(chain, chain[1:]):
+            old = at(w_markers.source_positions, b) - at(w_markers.source_positions, a)
+            new = at(scaled.source_positions, b) - at(scaled.source_positions, a)
+            ratio = (np.linalg.norm(at(t_rest[w_markers.pair_target], b) - at(t_rest[w_markers.pair_target], a))
+                     / np.linalg.norm(at(s_rest, b) - at(s_rest, a)))
+            np.testing.assert_allclose(new, ratio * old, atol=1e-12)
+            checked += 1
+    assert checked >= 10
+    # the witch's fingers are longer: the scaled tips move out
+    assert np.mean(np.linalg.norm(scaled.source_positions - w_markers.source_positions, axis=2)[:, on_chain]) > 0.005
+    np.testing.assert_array_equal(scaled.source_positions[:, ~on_chain], w_markers.source_positions[:, ~on_chain])

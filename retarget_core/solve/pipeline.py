@@ -28,7 +28,7 @@ from .baselines import FingertipObjective, KeyvectorObjective, keyvector_beta
 from .config import RetargetConfig
 from .frame_solver import solve_frame
 from .objective import FrameData, FrameObjective
-from .targets import ContactTargets, MarkerTargets, contact_targets, marker_targets
+from .targets import ContactTargets, MarkerTargets, contact_targets, marker_targets, scale_finger_markers
 
 Progress = Callable[[str, int, int], None]
 
@@ -249,6 +249,8 @@ def solve_trajectory(clip: Clip, source: Rig, target: Rig, annotations: Annotati
     t0 = time.perf_counter()
     transferred = transfer_clip(pairs, source, target, annotations, workers=config.workers)
     markers = marker_targets(clip, source, target, annotations)
+    if config.markers.scale_fingers:
+        markers = scale_finger_markers(markers, source, target)
     contacts = contact_targets(clip, pairs, transferred.contacts, keep_source_gap=config.contacts.keep_source_gap)
     timings["transfer"] = time.perf_counter() - t0
     if len(markers.pair_target) < 3:

@@ -7,6 +7,7 @@ annotations; stored as flat arrays so frames can be sent to worker processes che
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,7 +26,8 @@ class MarkerTargets:
     """Marker pairs. target_faces (Mt,), target_barycentric (Mt, 3): every target marker point;
     pair_target (Np,) index into them; pair_weight (Np,) (1/K for a marker of K pairs, so each
     marker counts once); source_positions (T, Np, 3) metres: the source side of each pair per
-    frame; names (Np,) the marker of each pair."""
+    frame; names (Np,) the marker of each pair; source_faces (Np,), source_barycentric (Np, 3): the source
+    side of each pair on the source rig's surface."""
 
     target_faces: np.ndarray
     target_barycentric: np.ndarray
@@ -33,6 +35,8 @@ class MarkerTargets:
     pair_weight: np.ndarray
     source_positions: np.ndarray
     names: list
+    source_faces: np.ndarray | None = None
+    source_barycentric: np.ndarray | None = None
 
 
 @dataclass
@@ -92,8 +96,9 @@ def marker_targets(clip: Clip, source: Rig, target: Rig, annotations: Annotation
     s_points = SurfacePoints(np.array(s_faces), np.array(s_bary))
     corners = clip.hand_faces[s_points.faces]  # (Ms, 3)
     src_pos = np.einsum("mk,tmkd->tmd", s_points.barycentric, clip.hand_vertices[:, corners].astype(np.float64))
+    pair_s = np.array(pair_s)
     return MarkerTargets(np.array(t_faces), np.array(t_bary), np.array(pair_t), np.array(weight),
-                         src_pos[:, np.array(pair_s)], names)
+                         src_pos[:, pair_s], names, s_points.faces[pair_s], s_points.barycentric[pair_s])
 
 
 def contact_targets(clip: Clip, pairs: ContactPairs, transferred: TransferredContacts, *,
@@ -126,3 +131,46 @@ def contact_targets(clip: Clip, pairs: ContactPairs, transferred: TransferredCon
     offsets = np.zeros(clip.n_frames + 1, dtype=np.int64)
     np.cumsum(np.bincount(frame_of, minlength=clip.n_frames), out=offsets[1:])
     return ContactTargets(offsets, transferred.face[keep], transferred.barycentric[keep], world_p, world_n, gap)
+
+
+FINGER_CHAIN = ("Base", "Middle", "Tip", "Fingertip")
+"""The paper's markers along each finger, from the knuckle out (``IndexBase`` ... ``IndexFingertip``)."""
+
+
+def scale_finger_markers(markers: MarkerTargets, source: Rig, target: Rig) -> MarkerTargets:
+    """The source markers of each finger re-placed for the target's finger proportions.
+
+    Along each finger chain (``<Finger>Base``, ``Middle``, ``Tip``, ``Fingertip``: whichever of
+    them the annotations have), every link from one marker to the next keeps its direction in
+    each frame and is scaled by the target's link length over the source's, both at the rigs'
+    rest poses (a marker of several points: their weighted centroid). The knuckle marker and
+    all other markers stay where they are, so a target with the source's proportions gets the
+    same markers back. Returns a new :class:`MarkerTargets` (source_positions (T, Np, 3), m)."""
+    if not len(markers.pair_target):
+        return markers
+    if markers.source_faces is None:
+        raise ValueError("marker targets built without their source points")
+    names = np.asarray(markers.names, dtype=object)
+    s_kin, t_kin = source.kinematics(), target.kinematics()
+    s_rest = s_kin.points(source.rest_pose, s_kin.bind(SurfacePoints(markers.source_faces, markers.source_barycentric)))
+    t_rest = t_kin.points(target.rest_pose, t_kin.bind(SurfacePoints(markers.target_faces, markers.target_barycentric)))
+    t_rest = t_rest[markers.pair_target]  # (Np, 3)
+    positions = markers.source_positions.copy()
+    fingers = sorted({n[: -len(part)] for n in set(markers.names) for part in FINGER_CHAIN if n.endswith(part)})
+    for finger in fingers:
+        sel = [np.flatnonzero(names == finger + part) for part in FINGER_CHAIN if np.any(names == finger + part)]
+        if len(sel) < 2:
+            continue
+        w = [markers.pair_weight[s] / markers.pair_weight[s].sum() for s in sel]
+        def centroid(x):  # (..., Np, 3) -> (..., K, 3): each chain marker's weighted centroid
+            return np.stack([(x[..., s, :] * wi[:, None]).sum(axis=-2) for s, wi in zip(sel, w)], axis=-2)
+
+        src = centroid(markers.source_positions)  # (T, K, 3)
+        links = np.diff(src, axis=1)  # (T, K-1, 3)
+        s_len = np.linalg.norm(np.diff(centroid(s_rest), axis=0), axis=1)
+        t_len = np.linalg.norm(np.diff(centroid(t_rest), axis=0), axis=1)
+        ratio = np.where(s_len > 1e-9, t_len / np.maximum(s_len, 1e-9), 1.0)
+        placed = np.concatenate([src[:, :1], src[:, :1] + np.cumsum(links * ratio[None, :, None], axis=1)], axis=1)
+        for k, s in enumerate(sel):
+            positions[:, s] += (placed[:, k] - src[:, k])[:, None]
+    return dataclasses.replace(markers, source_positions=positions)
