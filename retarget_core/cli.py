@@ -791,6 +791,15 @@ def build_parser() -> argparse.ArgumentParser:
     xfer.add_argument("--target", default="human_alt", help="demo hand")
     xfer.add_argument("--resolution", type=float, default=0.0025, help="target mesh cell size (m)")
     xfer.set_defaults(func=_cmd_bench_transfer)
+
+    # The job service lives in server/ (thin around this core); its commands are registered
+    # here so there is one `handretarget` entry point.
+    try:
+        from server.cli import add_commands
+    except ImportError:  # the core installed without the service
+        pass
+    else:
+        add_commands(sub)
     return parser
 
 

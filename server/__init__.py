@@ -1,1 +1,3 @@
-"""The retargeting job service (FastAPI), built around retarget_core. See issue 7."""
+"""The retargeting job service (FastAPI) around retarget_core: a versioned REST API (``/v1``),
+an embedded store (SQLite + files, :mod:`server.storage`), jobs run in their own processes
+(:mod:`server.runner`, :mod:`server.job_process`), optionally spreading frames over Dask."""

@@ -1,0 +1,116 @@
+"""The FastAPI application: routers, structured request logs, Prometheus metrics, readable
+errors, and the job runner started and stopped with the app."""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import time
+import uuid
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+
+from .routers import assets, jobs, ops
+from .runner import JobRunner
+from .settings import Settings
+from .storage import JOB_STATES, Store
+
+API_VERSION = "1"
+log = logging.getLogger("server.http")
+
+
+class JsonLogFormatter(logging.Formatter):
+    """One JSON object per line: time, level, logger, message and any ``extra`` fields."""
+
+    FIELDS = ("request_id", "method", "path", "status", "ms", "owner")
+
+    def format(self, record):
+        doc = {"time": round(record.created, 3), "level": record.levelname, "logger": record.name,
+               "message": record.getMessage()}
+        doc.update({k: getattr(record, k) for k in self.FIELDS if hasattr(record, k)})
+        if record.exc_info:
+            doc["exception"] = self.formatException(record.exc_info)
+        return json.dumps(doc)
+
+
+def configure_logging(level=logging.INFO) -> None:
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(JsonLogFormatter())
+    root = logging.getLogger("server")
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+    root.propagate = False
+
+
+class Metrics:
+    def __init__(self, store: Store):
+        self.registry = CollectorRegistry()
+        self.requests = Counter("handretarget_http_requests_total", "HTTP requests", ["method", "route", "status"],
+                                registry=self.registry)
+        self.latency = Histogram("handretarget_http_request_seconds", "HTTP request latency", ["method", "route"],
+                                 registry=self.registry,
+                                 buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10))
+        jobs_gauge = Gauge("handretarget_jobs", "jobs in the store by state", ["state"], registry=self.registry)
+        for state in JOB_STATES:  # read from the store at scrape time
+            jobs_gauge.labels(state).set_function(lambda s=state: store.state_counts()[s])
+
+
+def _readable(exc: RequestValidationError) -> str:
+    parts = []
+    for e in exc.errors():
+        loc = ".".join(str(x) for x in e.get("loc", ()) if x not in ("body", "query", "path", "header"))
+        parts.append(f"{loc or 'request'}: {e.get('msg', 'invalid')}")
+    return "; ".join(parts)
+
+
+def create_app(settings: Settings) -> FastAPI:
+    store = Store(settings.data_dir)
+    runner = JobRunner(store, settings)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        runner.start()
+        try:
+            yield
+        finally:
+            runner.stop()
+
+    app = FastAPI(title="Hand Retarget service", version=API_VERSION, lifespan=lifespan,
+                  description="Retarget captured hand-object clips onto any hand rig; USD animation layers "
+                              "with one B-spline per DOF. Every endpoint but health and readiness needs "
+                              "'Authorization: Bearer <token>'.")
+    app.state.store, app.state.settings, app.state.runner = store, settings, runner
+    app.state.metrics = Metrics(store)
+    for r in (ops.router, assets.router, jobs.router):
+        app.include_router(r)
+
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(request: Request, exc: RequestValidationError):
+        return JSONResponse({"detail": _readable(exc)}, status_code=422)
+
+    @app.middleware("http")
+    async def log_and_measure(request: Request, call_next):
+        request_id = request.headers.get("x-request-id") or uuid.uuid4().hex[:16]
+        start = time.perf_counter()
+        status = 500
+        try:
+            response = await call_next(request)
+            status = response.status_code
+            response.headers["X-Request-ID"] = request_id
+            return response
+        finally:
+            seconds = time.perf_counter() - start
+            route = request.scope.get("route")
+            path = getattr(route, "path", "unmatched")
+            app.state.metrics.requests.labels(request.method, path, str(status)).inc()
+            app.state.metrics.latency.labels(request.method, path).observe(seconds)
+            log.info("request", extra={"request_id": request_id, "method": request.method, "path": request.url.path,
+                                       "status": status, "ms": round(1000 * seconds, 2),
+                                       "owner": getattr(request.state, "owner", None)})
+
+    return app

@@ -1,0 +1,157 @@
+"""Validating uploaded assets with the core's own readers, before anything is recorded.
+
+Kinds: ``rig`` (USD, or a zip of a URDF / MJCF robot hand with its meshes), ``annotations``
+(JSON), ``clip`` (native npz, read with ``allow_pickle=False``) and ``file`` (raw inputs of the
+GRAB importer: a sequence, the user's MANO model, meshes; they are only ever opened by the
+restricted GRAB loader in :func:`import_grab_clip`).
+"""
+
+from __future__ import annotations
+
+import shutil
+import stat
+import zipfile
+from pathlib import Path, PurePosixPath
+
+from retarget_core.errors import InputError
+
+KINDS = ("rig", "annotations", "clip", "file")
+FILE_SUFFIXES = (".npz", ".pkl", ".ply", ".obj", ".stl", ".off")
+ROBOT_SUFFIXES = (".urdf", ".xml", ".mjcf")
+MAX_BUNDLE_MEMBERS = 2000
+
+
+class UploadError(ValueError):
+    """An upload that is not a valid asset of its kind (HTTP 422)."""
+
+
+def sniff_rig(head: bytes) -> str:
+    """The rig upload's container from its first bytes: '.usda', '.usdc' or '.zip'."""
+    if head.startswith(b"PK\x03\x04"):
+        return ".zip"
+    if head.startswith(b"PXR-USDC"):
+        return ".usdc"
+    if head.lstrip().startswith(b"#usda"):
+        return ".usda"
+    raise UploadError("a rig must be a USD file (usda or usdc) or a zip of a URDF or MJCF robot hand with its meshes")
+
+
+def rig_info(rig) -> dict:
+    surface = rig.surface
+    return {"name": rig.name, "dofs": rig.n_dofs, "dof_names": list(rig.dof_names),
+            "vertices": int(surface.n_vertices), "faces": int(len(surface.faces))}
+
+
+def validate_upload(kind: str, tmp: Path, filename: str, *, scratch: Path, bundle_bytes: int) -> tuple[Path, str, dict]:
+    """Check the upload at ``tmp`` (no suffix) as a ``kind`` asset. Returns (path to move to the
+    content address, its suffix, info). Raises :class:`UploadError` naming the problem; the
+    caller removes what is left under ``scratch``."""
+    head = tmp.open("rb").read(16)
+    if kind == "annotations":
+        from retarget_core.transfer.annotations import load_annotations
+
+        path = tmp.rename(tmp.with_suffix(".json"))
+        ann = _core(load_annotations, path)
+        return path, ".json", {"source": ann.source.to_dict(), "target": ann.target.to_dict(),
+                               "markers": len(ann.markers), "curves": len(ann.curves)}
+    if kind == "clip":
+        from retarget_core.clip import load_clip
+
+        if not head.startswith(b"PK\x03\x04"):
+            raise UploadError("a clip must be a native clip .npz (a zip archive); convert GRAB sequences with "
+                              "POST /v1/clips/import-grab")
+        path = tmp.rename(tmp.with_suffix(".npz"))
+        clip = _core(load_clip, path)
+        return path, ".npz", {"frames": clip.n_frames, "fps": float(clip.fps), "source_rig": clip.source_rig,
+                              "object": clip.object_name, "hand_vertices": int(clip.hand_vertices.shape[1]),
+                              "hand_faces": int(len(clip.hand_faces)), "motion": clip.motion}
+    if kind == "file":
+        suffix = Path(filename).suffix.lower()
+        if suffix not in FILE_SUFFIXES:
+            raise UploadError(f"a file upload needs a name ending in one of {', '.join(FILE_SUFFIXES)} "
+                              f"(got {filename!r})")
+        path = tmp.rename(tmp.with_suffix(suffix))
+        return path, suffix, {"suffix": suffix}
+    if kind == "rig":
+        from retarget_core.rig.io import load_rig, save_rig
+
+        suffix = sniff_rig(head)
+        if suffix != ".zip":
+            path = tmp.rename(tmp.with_suffix(suffix))
+            return path, suffix, rig_info(_core(load_rig, path))
+        # A robot bundle: unpacked safely, imported (wrapper surface built once, here), and kept
+        # as the USD rig the jobs read, so every job sees the same surface the annotations name.
+        folder = scratch / "bundle"
+        entry = _unpack_bundle(tmp, folder, bundle_bytes)
+        rig = _core(load_rig, entry)
+        usd = scratch / "rig.usda"
+        save_rig(rig, usd)
+        info = rig_info(rig) | {"imported_from": str(entry.relative_to(folder))}
+        tmp.unlink()
+        return usd, ".usda", info
+    raise UploadError(f"unknown asset kind {kind!r} (known: {', '.join(KINDS)})")
+
+
+def _core(fn, path):
+    try:
+        return fn(path)
+    except InputError as err:
+        raise UploadError(_without_path(str(err), path)) from err
+
+
+def _without_path(message: str, path: Path) -> str:
+    """Core errors name the file; the client never sees the server's paths."""
+    return message.replace(str(path), path.suffix.lstrip(".") + " upload").replace(str(path.parent) + "/", "")
+
+
+def _unpack_bundle(archive: Path, folder: Path, limit: int) -> Path:
+    """Extract a robot bundle zip into ``folder`` refusing absolute paths, '..', links and more
+    than ``limit`` bytes unpacked; return the one URDF / MJCF file at its top level."""
+    try:
+        zf = zipfile.ZipFile(archive)
+    except zipfile.BadZipFile as err:
+        raise UploadError("the rig zip is not a readable zip archive") from err
+    with zf:
+        members = zf.infolist()
+        if len(members) > MAX_BUNDLE_MEMBERS:
+            raise UploadError(f"the rig zip holds {len(members)} entries (at most {MAX_BUNDLE_MEMBERS})")
+        if sum(m.file_size for m in members) > limit:
+            raise UploadError(f"the rig zip unpacks to more than {limit} bytes")
+        for m in members:
+            name = PurePosixPath(m.filename)
+            if name.is_absolute() or ".." in name.parts or "\\" in m.filename:
+                raise UploadError(f"the rig zip has an unsafe path {m.filename!r}")
+            if stat.S_ISLNK(m.external_attr >> 16):
+                raise UploadError(f"the rig zip has a symbolic link {m.filename!r}")
+        folder.mkdir(parents=True)
+        for m in members:
+            dest = folder / PurePosixPath(m.filename)
+            if m.is_dir():
+                dest.mkdir(parents=True, exist_ok=True)
+                continue
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            with zf.open(m) as src, dest.open("wb") as out:
+                shutil.copyfileobj(src, out)
+    entries = sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in ROBOT_SUFFIXES
+                     and len(p.relative_to(folder).parts) <= 2)
+    if entries and any(p.suffix.lower() == ".urdf" for p in entries):
+        entries = [p for p in entries if p.suffix.lower() == ".urdf"]
+    if len(entries) != 1:
+        names = ", ".join(str(p.relative_to(folder)) for p in entries) or "none"
+        raise UploadError(f"the rig zip must hold exactly one URDF or MJCF file at its top level (found: {names})")
+    return entries[0]
+
+
+def import_grab_clip(sequence: Path, mano: Path, object_mesh: Path, table_mesh: Path | None, vtemp: Path | None):
+    """A validated :class:`~retarget_core.clip.Clip` from uploaded GRAB files (the core's
+    restricted loader: nothing outside numpy's array types is ever unpickled)."""
+    from retarget_core.clip.grab import import_grab
+
+    try:
+        return import_grab(sequence, mano, object_mesh=object_mesh, table_mesh=table_mesh, vtemp=vtemp)
+    except InputError as err:
+        message = str(err)
+        for p in (sequence, mano, object_mesh, table_mesh, vtemp):
+            if p is not None:
+                message = message.replace(str(p), p.name[:12] + "…" + p.suffix)
+        raise UploadError(message) from err

@@ -1,0 +1,1 @@
+"""The /v1 API's routers: assets, jobs, and operations (health, readiness, metrics)."""

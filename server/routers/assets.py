@@ -1,0 +1,191 @@
+"""Assets: upload (content-addressed, validated by the core's readers), list, describe,
+download; the GRAB importer; proposed annotations."""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+from typing import Literal
+
+from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import FileResponse
+
+from ..assets import UploadError, import_grab_clip, validate_upload
+from ..deps import current_owner, get_settings, get_store
+from ..schemas import SHA256, Asset, AssetList, GrabImport, Problem, ProposeRequest
+from ..settings import Settings
+from ..storage import Store
+
+router = APIRouter(prefix="/v1", tags=["assets"])
+Kind = Literal["rig", "annotations", "clip", "file"]
+ERRORS = {401: {"model": Problem}, 404: {"model": Problem}, 413: {"model": Problem}, 422: {"model": Problem}}
+
+
+def public(asset: dict) -> dict:
+    return {k: asset[k] for k in ("id", "kind", "name", "size", "created", "info")}
+
+
+def owned(store: Store, owner: str, asset_id: str, kind: str, field: str) -> dict:
+    """The owner's asset of ``kind``; 404 naming the request field otherwise (another owner's
+    asset is as unknown as a missing one)."""
+    asset = store.asset(owner, asset_id, kind)
+    if asset is None:
+        raise HTTPException(404, f"{field}: no {kind} asset {asset_id} of yours; upload it with POST /v1/assets/{kind}")
+    return asset
+
+
+async def _receive(request: Request, store: Store, limit: int):
+    """Stream the body to a scratch file; (path, sha256, size). 413 beyond ``limit``."""
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > limit:
+        raise HTTPException(413, f"upload of {int(declared)} bytes is over the limit of {limit} bytes")
+    tmp = store.new_tmp()
+    digest, size = hashlib.sha256(), 0
+    try:
+        with tmp.open("wb") as out:
+            async for chunk in request.stream():
+                size += len(chunk)
+                if size > limit:
+                    raise HTTPException(413, f"upload is over the limit of {limit} bytes")
+                digest.update(chunk)
+                out.write(chunk)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    if size == 0:
+        tmp.unlink(missing_ok=True)
+        raise HTTPException(422, "the upload is empty: send the file's bytes as the request body")
+    return tmp, digest.hexdigest(), size
+
+
+def _store_validated(store: Store, owner: str, kind: str, name: str, tmp, sha: str, size: int,
+                     settings: Settings) -> tuple[dict, bool]:
+    known = store.asset_any_owner(sha, kind)
+    if known is not None:  # the same bytes were validated before: share the blob
+        tmp.unlink(missing_ok=True)
+        return store.add_asset(owner, sha, kind, name, size, store.asset_path(known), known["info"])
+    scratch = store.new_tmp(".d")
+    scratch.mkdir()
+    try:
+        path, ext, info = validate_upload(kind, tmp, name, scratch=scratch, bundle_bytes=4 * settings.max_upload_bytes)
+        final = store.put_blob(path, sha, ext)
+        return store.add_asset(owner, sha, kind, name, size, final, info)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+        for leftover in store.paths.tmp.glob(tmp.name + "*"):
+            leftover.unlink(missing_ok=True)
+
+
+@router.post("/assets/{kind}", response_model=Asset, status_code=201, responses=ERRORS | {200: {"model": Asset}},
+             openapi_extra={"requestBody": {"required": True, "content": {
+                 "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}}})
+async def upload_asset(request: Request, response: Response, kind: Kind,
+                       name: str = Query(..., min_length=1, max_length=200, description="the file's name"),
+                       owner: str = Depends(current_owner), store: Store = Depends(get_store),
+                       settings: Settings = Depends(get_settings)):
+    """Upload a rig (USD, or a zip of a URDF / MJCF hand), annotations (JSON), a clip (npz) or
+    a raw file for the GRAB importer, as the request body. The asset's id is the sha256 of the
+    bytes; uploading the same bytes again returns the same asset (200)."""
+    tmp, sha, size = await _receive(request, store, settings.max_upload_bytes)
+    try:
+        asset, created = await run_in_threadpool(_store_validated, store, owner, kind, name, tmp, sha, size, settings)
+    except UploadError as err:
+        raise HTTPException(422, f"not a valid {kind}: {err}") from err
+    response.status_code = 201 if created else 200
+    return public(asset)
+
+
+@router.get("/assets", response_model=AssetList, responses=ERRORS)
+def list_assets(kind: Kind | None = None, owner: str = Depends(current_owner), store: Store = Depends(get_store)):
+    return {"assets": [public(a) for a in store.assets(owner, kind)]}
+
+
+@router.get("/assets/{asset_id}", response_model=Asset, responses=ERRORS)
+def get_asset(asset_id: str = Path(..., pattern=SHA256), kind: Kind | None = None,
+              owner: str = Depends(current_owner), store: Store = Depends(get_store)):
+    asset = store.asset(owner, asset_id, kind)
+    if asset is None:
+        raise HTTPException(404, f"no asset {asset_id} of yours")
+    return public(asset)
+
+
+@router.get("/assets/{asset_id}/content", response_class=FileResponse, responses=ERRORS)
+def download_asset(asset_id: str = Path(..., pattern=SHA256), kind: Kind | None = None,
+                   owner: str = Depends(current_owner), store: Store = Depends(get_store)):
+    """The stored file (for a robot bundle: the USD rig imported from it)."""
+    asset = store.asset(owner, asset_id, kind)
+    if asset is None:
+        raise HTTPException(404, f"no asset {asset_id} of yours")
+    path = store.asset_path(asset)
+    return FileResponse(path, filename=f"{asset['name'].rsplit('.', 1)[0]}{path.suffix}",
+                        media_type="application/octet-stream")
+
+
+def _save_new_asset(store: Store, owner: str, kind: str, name: str, write) -> tuple[dict, bool]:
+    """Store a file the service made (``write(path)``) as ``owner``'s asset."""
+    tmp = store.new_tmp(".npz" if kind == "clip" else ".json")
+    try:
+        write(tmp)
+        data = tmp.read_bytes()
+        sha = hashlib.sha256(data).hexdigest()
+        final = store.put_blob(tmp, sha, tmp.suffix)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return final, sha, len(data)
+
+
+@router.post("/clips/import-grab", response_model=Asset, status_code=201, responses=ERRORS)
+def import_grab(body: GrabImport, response: Response, owner: str = Depends(current_owner),
+                store: Store = Depends(get_store)):
+    """Convert a GRAB sequence (with the user's MANO model and the object's mesh, uploaded as
+    ``file`` assets) into a clip asset."""
+    def path(field):
+        value = getattr(body, field)
+        return None if value is None else store.asset_path(owned(store, owner, value, "file", field))
+
+    paths = {f: path(f) for f in ("sequence", "mano", "object_mesh", "table_mesh", "vtemp")}
+    try:
+        clip = import_grab_clip(**{"sequence": paths["sequence"], "mano": paths["mano"],
+                                   "object_mesh": paths["object_mesh"], "table_mesh": paths["table_mesh"],
+                                   "vtemp": paths["vtemp"]})
+    except UploadError as err:
+        raise HTTPException(422, f"cannot import the GRAB sequence: {err}") from err
+    final, sha, size = _save_new_asset(store, owner, "clip", body.name, clip.save)
+    info = {"frames": clip.n_frames, "fps": float(clip.fps), "source_rig": clip.source_rig,
+            "object": clip.object_name, "hand_vertices": int(clip.hand_vertices.shape[1]),
+            "hand_faces": int(len(clip.hand_faces)), "motion": clip.motion, "imported_from": "grab"}
+    asset, created = store.add_asset(owner, sha, "clip", body.name, size, final, info)
+    response.status_code = 201 if created else 200
+    return public(asset)
+
+
+@router.post("/annotations/propose", response_model=Asset, status_code=201, responses=ERRORS)
+def propose(body: ProposeRequest, response: Response, owner: str = Depends(current_owner),
+            store: Store = Depends(get_store)):
+    """Proposed annotations (markers by name, one axial curve per finger and two on the palm)
+    from the source rig onto the target rig, stored as an annotations asset to edit or use."""
+    from retarget_core.clip.demo import source_rig
+    from retarget_core.errors import InputError
+    from retarget_core.rig.io import load_rig
+    from retarget_core.transfer.annotations import save_annotations
+    from retarget_core.transfer.propose import propose_annotations
+
+    target_asset = owned(store, owner, body.target_rig, "rig", "target_rig")
+    source = (load_rig(store.asset_path(owned(store, owner, body.source_rig, "rig", "source_rig")))
+              if body.source_rig else source_rig())
+    try:
+        annotations = propose_annotations(source, load_rig(store.asset_path(target_asset)))
+    except InputError as err:
+        raise HTTPException(422, f"cannot propose annotations: {err}") from err
+    name = f"{source.name}_to_{target_asset['info'].get('name', 'target')}.json"
+    final, sha, size = _save_new_asset(store, owner, "annotations", name,
+                                       lambda p: save_annotations(annotations, p))
+    info = {"source": annotations.source.to_dict(), "target": annotations.target.to_dict(),
+            "markers": len(annotations.markers), "curves": len(annotations.curves), "proposed": True}
+    asset, created = store.add_asset(owner, sha, "annotations", name, size, final, info)
+    response.status_code = 201 if created else 200
+    return public(asset)
+
+
+

@@ -1,0 +1,160 @@
+"""Jobs: submit (with an Idempotency-Key), list, status, a server-sent events stream of
+progress, cancel, and the artifacts of a finished job."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+
+from fastapi import APIRouter, Depends, Header, HTTPException, Path, Query, Response
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import FileResponse, StreamingResponse
+
+from ..deps import current_owner, get_settings, get_store
+from ..schemas import Job, JobCreate, JobList, Problem
+from ..settings import Settings
+from ..storage import FINAL_STATES, JOB_STATES, Store
+from .assets import owned
+
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+JOB_ID = r"^[0-9a-f]{32}$"
+ARTIFACTS = {  # name -> media type; nothing else under a job's folder is ever served
+    "animation.usda": "text/plain", "animation.usdc": "application/octet-stream", "rig.usda": "text/plain",
+    "result.json": "application/json", "animation.json": "application/json", "metrics.json": "application/json",
+    "intersection.png": "image/png", "contact_error.png": "image/png", "frames.png": "image/png",
+}
+SERVICE_KEYS = ("workers", "dask_scheduler")
+ERRORS = {401: {"model": Problem}, 404: {"model": Problem}, 409: {"model": Problem}, 422: {"model": Problem},
+          429: {"model": Problem}}
+
+
+def public(store: Store, job: dict) -> dict:
+    out = {k: job[k] for k in ("id", "state", "stage", "progress", "frames_done", "frames_total", "attempts",
+                               "created", "started", "finished", "timings", "summary", "error", "request")}
+    folder = store.paths.job(job["id"])
+    out["artifacts"] = sorted(n for n in ARTIFACTS if (folder / n).is_file()) if job["state"] == "succeeded" else []
+    return out
+
+
+def _own_job(store: Store, owner: str, job_id: str) -> dict:
+    job = store.job(job_id, owner)
+    if job is None:
+        raise HTTPException(404, f"no job {job_id} of yours")
+    return job
+
+
+def check_request(body: JobCreate, owner: str, store: Store) -> None:
+    """Everything that can be checked before the job runs: the assets are the caller's and of
+    the right kind, the config is valid, and the annotations were made for this rig."""
+    from retarget_core.errors import InputError
+    from retarget_core.solve.config import load_config
+
+    clip = owned(store, owner, body.clip, "clip", "clip")
+    rig = owned(store, owner, body.rig, "rig", "rig")
+    annotations = owned(store, owner, body.annotations, "annotations", "annotations")
+    if body.source_rig:
+        source = owned(store, owner, body.source_rig, "rig", "source_rig")
+    elif not str(clip["info"].get("source_rig", "")).startswith("demo:"):
+        raise HTTPException(422, "source_rig: the clip does not name a demo source hand; upload the rig the clip "
+                                 "was made with (for GRAB clips: the MANO hand as USD) and pass its id as source_rig")
+    else:
+        source = None
+    service_keys = [k for k in body.overrides if k.split(".")[0] in SERVICE_KEYS]
+    if service_keys:
+        raise HTTPException(422, f"overrides: {', '.join(service_keys)} is set by the service, not per job")
+    try:
+        load_config(None, body.preset, body.overrides)
+    except InputError as err:
+        raise HTTPException(422, f"overrides: {err}") from err
+    for side, asset, field in (("target", rig, "rig"), ("source", source, "source_rig")):
+        if asset is None:
+            continue
+        sig, info = annotations["info"][side], asset["info"]
+        if (sig["vertices"], sig["faces"]) != (info["vertices"], info["faces"]):
+            raise HTTPException(422, f"annotations: made for a {side} mesh of {sig['vertices']} vertices and "
+                                     f"{sig['faces']} faces ({sig['rig']!r}), but {field} {info['name']!r} has "
+                                     f"{info['vertices']} and {info['faces']}; annotate this rig (or ask "
+                                     f"POST /v1/annotations/propose)")
+
+
+@router.post("", response_model=Job, status_code=201, responses=ERRORS | {200: {"model": Job}})
+def create_job(body: JobCreate, response: Response, owner: str = Depends(current_owner),
+               idempotency_key: str | None = Header(default=None, max_length=200,
+                                                    description="repeat a submission safely: the same key returns "
+                                                                "the same job"),
+               store: Store = Depends(get_store), settings: Settings = Depends(get_settings)):
+    """Queue a retarget of ``clip`` onto ``rig`` with ``annotations``."""
+    check_request(body, owner, store)
+    try:
+        job, created = store.create_job(owner, body.model_dump(), idempotency_key, settings.max_active_jobs)
+    except LookupError as err:
+        raise HTTPException(429, f"{err}; wait for some to finish or cancel them", headers={"Retry-After": "10"}) from err
+    except ValueError as err:
+        raise HTTPException(409, f"Idempotency-Key: {err}; use a new key for a new job") from err
+    response.status_code = 201 if created else 200
+    return public(store, job)
+
+
+@router.get("", response_model=JobList, responses=ERRORS)
+def list_jobs(state: str | None = Query(default=None, pattern="^(" + "|".join(JOB_STATES) + ")$"),
+              owner: str = Depends(current_owner), store: Store = Depends(get_store)):
+    return {"jobs": [public(store, j) for j in store.jobs(owner, (state,) if state else None)]}
+
+
+@router.get("/{job_id}", response_model=Job, responses=ERRORS)
+def get_job(job_id: str = Path(..., pattern=JOB_ID), owner: str = Depends(current_owner),
+            store: Store = Depends(get_store)):
+    return public(store, _own_job(store, owner, job_id))
+
+
+@router.post("/{job_id}/cancel", response_model=Job, status_code=202, responses=ERRORS)
+def cancel_job(job_id: str = Path(..., pattern=JOB_ID), owner: str = Depends(current_owner),
+               store: Store = Depends(get_store)):
+    """Cancel a queued job at once, or ask a running one to stop (it turns ``cancelled``)."""
+    job = _own_job(store, owner, job_id)
+    if job["state"] in FINAL_STATES:
+        raise HTTPException(409, f"job {job_id} already {job['state']}; nothing to cancel")
+    if not store.update_job(job_id, only_if_state=("queued",), state="cancelled", stage="cancelled",
+                            cancel_requested=1, finished=time.time()):
+        store.update_job(job_id, only_if_state=("running",), cancel_requested=1)
+    return public(store, store.job(job_id))
+
+
+@router.get("/{job_id}/events", responses=ERRORS | {200: {"content": {"text/event-stream": {}}}})
+async def job_events(job_id: str = Path(..., pattern=JOB_ID), owner: str = Depends(current_owner),
+                     store: Store = Depends(get_store)):
+    """Server-sent events: a ``status`` event (the job as JSON) whenever it changes, ending
+    after a final state."""
+    await run_in_threadpool(_own_job, store, owner, job_id)
+
+    async def stream():
+        last = None
+        while True:
+            job = await run_in_threadpool(store.job, job_id)
+            data = json.dumps(public(store, job))
+            if data != last:
+                last = data
+                yield f"event: status\ndata: {data}\n\n"
+            if job["state"] in FINAL_STATES:
+                return
+            await asyncio.sleep(0.2)
+
+    return StreamingResponse(stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"})
+
+
+@router.get("/{job_id}/artifacts/{name}", response_class=FileResponse, responses=ERRORS)
+def get_artifact(name: str, job_id: str = Path(..., pattern=JOB_ID), owner: str = Depends(current_owner),
+                 store: Store = Depends(get_store)):
+    """One artifact of a succeeded job: animation.usda / .usdc (over rig.usda, which is also
+    served), result.json, animation.json (joint values per frame), metrics.json, and the
+    report's plots (intersection.png, contact_error.png, frames.png)."""
+    if name not in ARTIFACTS:
+        raise HTTPException(404, f"no artifact {name!r}; artifacts are: {', '.join(sorted(ARTIFACTS))}")
+    job = _own_job(store, owner, job_id)
+    if job["state"] != "succeeded":
+        raise HTTPException(409, f"job {job_id} is {job['state']}; artifacts exist once it has succeeded")
+    path = store.paths.job(job_id) / name
+    if not path.is_file():
+        raise HTTPException(404, f"job {job_id} has no {name} (see the job's artifacts list)")
+    return FileResponse(path, media_type=ARTIFACTS[name], filename=name)

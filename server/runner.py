@@ -1,0 +1,140 @@
+"""Runs queued jobs, each in its own process, and keeps them durable.
+
+One thread in the service claims queued jobs oldest first (up to ``job_slots`` at once) and
+starts ``python -m server.job_process`` for each in a new process group, so a cancel or a
+restart can stop the job with every process of its pool. At start-up, jobs the store still
+calls ``running`` (the service was stopped or killed mid-job) get their leftover processes
+stopped and go back to the queue; a job is tried at most ``max_attempts`` times.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from .settings import Settings
+from .storage import Store
+
+log = logging.getLogger("server.runner")
+
+
+def _alive_job_process(pid: int | None, job_id: str) -> bool:
+    """Whether ``pid`` is still a job process of ``job_id`` (and not a reused pid)."""
+    if not pid:
+        return False
+    try:
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    except OSError:
+        return False
+    return b"server.job_process" in cmdline and job_id.encode() in cmdline
+
+
+def _stop_group(pid: int, grace: float = 3.0) -> None:
+    """SIGTERM the process group led by ``pid``, SIGKILL what is left after ``grace`` s."""
+    for sig, wait in ((signal.SIGTERM, grace), (signal.SIGKILL, 0.0)):
+        try:
+            os.killpg(pid, sig)
+        except ProcessLookupError:
+            return
+        deadline = time.monotonic() + wait
+        while time.monotonic() < deadline:
+            try:
+                os.killpg(pid, 0)
+            except ProcessLookupError:
+                return
+            time.sleep(0.05)
+
+
+class JobRunner:
+    def __init__(self, store: Store, settings: Settings):
+        self.store, self.settings = store, settings
+        self.children: dict[str, subprocess.Popen] = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="job-runner", daemon=True)
+        self.logs = store.paths.root / "logs"
+        self.logs.mkdir(exist_ok=True)
+
+    # ---- life cycle --------------------------------------------------------------------------
+    def start(self) -> None:
+        self.recover()
+        self._thread.start()
+
+    def alive(self) -> bool:
+        return self._thread.is_alive()
+
+    def stop(self) -> None:
+        """Stop the loop; running jobs are stopped too and stay ``running`` in the store, so
+        the next start re-runs them (the same path as after a crash)."""
+        self._stop.set()
+        self._thread.join(timeout=10)
+        for job_id, proc in list(self.children.items()):
+            _stop_group(proc.pid)
+            proc.wait(timeout=10)
+        self.children.clear()
+
+    def recover(self) -> None:
+        for job in self.store.jobs(states=("running",)):
+            if _alive_job_process(job["pid"], job["id"]):
+                _stop_group(job["pid"])
+            self._requeue_or_fail(job, "the service stopped while the job was running")
+
+    def _requeue_or_fail(self, job: dict, why: str) -> None:
+        if job["cancel_requested"]:
+            self.store.update_job(job["id"], only_if_state=("running",), state="cancelled", pid=None,
+                                  finished=time.time(), stage="cancelled")
+        elif job["attempts"] >= self.settings.max_attempts:
+            self.store.update_job(job["id"], only_if_state=("running",), state="failed", pid=None,
+                                  finished=time.time(), error=f"{why}; gave up after {job['attempts']} attempts")
+        else:
+            log.info("re-queueing job %s (%s)", job["id"], why)
+            self.store.update_job(job["id"], only_if_state=("running",), state="queued", pid=None, stage="queued",
+                                  progress=0.0, frames_done=0)
+
+    # ---- the loop ----------------------------------------------------------------------------
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self._tick()
+            except Exception:  # noqa: BLE001 - the loop must outlive one bad tick (e.g. a locked store)
+                log.exception("job runner tick failed")
+            self._stop.wait(0.1)
+
+    def _tick(self) -> None:
+        for job_id, proc in list(self.children.items()):
+            job = self.store.job(job_id)
+            if proc.poll() is None:
+                if job is not None and job["cancel_requested"]:
+                    _stop_group(proc.pid)
+                    proc.wait()
+                    self.children.pop(job_id)
+                    self.store.update_job(job_id, only_if_state=("running",), state="cancelled", pid=None,
+                                          finished=time.time(), stage="cancelled")
+                continue
+            self.children.pop(job_id)
+            if job is not None and job["state"] == "running":  # died without a final state
+                self._requeue_or_fail(job, f"the job process exited with code {proc.returncode}")
+        while len(self.children) < self.settings.job_slots and not self._stop.is_set():
+            job = self.store.claim_next_job()
+            if job is None:
+                break
+            self._spawn(job)
+
+    def _spawn(self, job: dict) -> None:
+        s = self.settings
+        cmd = [sys.executable, "-m", "server.job_process", "--data-dir", str(self.store.paths.root),
+               "--job", job["id"], "--parent", str(os.getpid()), "--frame-workers", str(s.frame_workers),
+               "--evaluate-stride", str(s.evaluate_stride)]
+        if s.dask_scheduler:
+            cmd += ["--dask-scheduler", s.dask_scheduler]
+        with (self.logs / f"{job['id']}.log").open("ab") as log_file:
+            proc = subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                    start_new_session=True, cwd=str(Path(__file__).resolve().parent.parent))
+        self.children[job["id"]] = proc
+        self.store.update_job(job["id"], only_if_state=("running",), pid=proc.pid)
+        log.info("started job %s (attempt %d, pid %d)", job["id"], job["attempts"], proc.pid)

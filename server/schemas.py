@@ -1,0 +1,81 @@
+"""Request and response bodies of the /v1 API (pydantic)."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+SHA256 = r"^[0-9a-f]{64}$"
+
+
+class Problem(BaseModel):
+    """Every 4xx/5xx body: ``detail`` says what is wrong and what to do about it."""
+
+    detail: str
+
+
+class Asset(BaseModel):
+    id: str = Field(description="sha256 of the content")
+    kind: Literal["rig", "annotations", "clip", "file"]
+    name: str
+    size: int
+    created: float
+    info: dict[str, Any]
+
+
+class AssetList(BaseModel):
+    assets: list[Asset]
+
+
+class GrabImport(BaseModel):
+    """A GRAB sequence and the user's MANO model (and meshes), uploaded as ``file`` assets."""
+
+    model_config = ConfigDict(extra="forbid")
+    sequence: str = Field(pattern=SHA256, description="the GRAB sequence .npz")
+    mano: str = Field(pattern=SHA256, description="the MANO right-hand model (.pkl)")
+    object_mesh: str = Field(pattern=SHA256, description="the object's mesh (.ply / .obj / .stl)")
+    table_mesh: str | None = Field(default=None, pattern=SHA256)
+    vtemp: str | None = Field(default=None, pattern=SHA256, description="the subject's hand template mesh")
+    name: str = Field(default="grab_clip.npz", max_length=200)
+
+
+class ProposeRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    target_rig: str = Field(pattern=SHA256)
+    source_rig: str | None = Field(default=None, pattern=SHA256,
+                                   description="default: the demo source hand (what demo clips are made with)")
+
+
+class JobCreate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    clip: str = Field(pattern=SHA256)
+    rig: str = Field(pattern=SHA256, description="the target rig")
+    annotations: str = Field(pattern=SHA256)
+    source_rig: str | None = Field(default=None, pattern=SHA256,
+                                   description="the rig the clip was made with; default: the clip's demo hand")
+    preset: Literal["default", "paper"] = "default"
+    overrides: dict[str, Any] = Field(default_factory=dict, description='dotted config keys, e.g. {"solver.maxeval": 50}')
+    evaluate: bool = Field(default=True, description="also write metrics.json and the report's plots")
+
+
+class Job(BaseModel):
+    id: str
+    state: Literal["queued", "running", "succeeded", "failed", "cancelled"]
+    stage: str
+    progress: float
+    frames_done: int
+    frames_total: int
+    attempts: int
+    created: float
+    started: float | None
+    finished: float | None
+    timings: dict[str, float]
+    summary: dict[str, Any]
+    error: str | None
+    request: JobCreate
+    artifacts: list[str]
+
+
+class JobList(BaseModel):
+    jobs: list[Job]

@@ -1,0 +1,288 @@
+"""The embedded store: SQLite (WAL) for tokens, assets' metadata and jobs; files on disk for
+blobs and artifacts, all under one data directory::
+
+    DATA/service.sqlite3          tokens, assets, jobs
+    DATA/blobs/ab/<sha256><ext>   uploaded content, addressed by its sha256 (shared by owners)
+    DATA/blobs/ab/<sha256>.d/     an unpacked robot bundle (URDF / MJCF zip)
+    DATA/jobs/<job id>/           a finished job's artifacts (appears whole: renamed into place)
+    DATA/tmp/                     uploads and job outputs being written
+
+Every write that others may read is atomic: a blob is written under tmp/ and renamed into
+place, a job's artifact folder is renamed into place whole, and a job only becomes
+``succeeded`` after that. The service process and its job processes open their own
+connections (``connect``); WAL lets readers run beside the one writer.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import secrets
+import shutil
+import sqlite3
+import time
+import uuid
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+SCHEMA_VERSION = 1
+
+JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
+ACTIVE_STATES = ("queued", "running")
+FINAL_STATES = ("succeeded", "failed", "cancelled")
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS tokens (
+    id TEXT PRIMARY KEY, owner TEXT NOT NULL, token_hash TEXT NOT NULL UNIQUE, created REAL NOT NULL);
+CREATE TABLE IF NOT EXISTS assets (
+    owner TEXT NOT NULL, sha256 TEXT NOT NULL, kind TEXT NOT NULL, name TEXT NOT NULL,
+    size INTEGER NOT NULL, path TEXT NOT NULL, info TEXT NOT NULL, created REAL NOT NULL,
+    PRIMARY KEY (owner, sha256, kind));
+CREATE TABLE IF NOT EXISTS jobs (
+    id TEXT PRIMARY KEY, owner TEXT NOT NULL, state TEXT NOT NULL, request TEXT NOT NULL,
+    idempotency_key TEXT, stage TEXT NOT NULL DEFAULT '', progress REAL NOT NULL DEFAULT 0,
+    frames_done INTEGER NOT NULL DEFAULT 0, frames_total INTEGER NOT NULL DEFAULT 0,
+    timings TEXT NOT NULL DEFAULT '{}', summary TEXT NOT NULL DEFAULT '{}', error TEXT,
+    attempts INTEGER NOT NULL DEFAULT 0, pid INTEGER, cancel_requested INTEGER NOT NULL DEFAULT 0,
+    created REAL NOT NULL, started REAL, finished REAL, updated REAL NOT NULL);
+CREATE UNIQUE INDEX IF NOT EXISTS jobs_idempotency ON jobs (owner, idempotency_key)
+    WHERE idempotency_key IS NOT NULL;
+CREATE INDEX IF NOT EXISTS jobs_owner ON jobs (owner, created);
+CREATE INDEX IF NOT EXISTS jobs_state ON jobs (state, created);
+"""
+
+
+def hash_token(token: str) -> str:
+    """Tokens are 256-bit random strings, so one sha256 (not a slow password hash) is enough."""
+    return hashlib.sha256(token.encode("utf-8")).hexdigest()
+
+
+@dataclass(frozen=True)
+class Paths:
+    root: Path
+
+    @property
+    def database(self) -> Path:
+        return self.root / "service.sqlite3"
+
+    @property
+    def blobs(self) -> Path:
+        return self.root / "blobs"
+
+    @property
+    def jobs(self) -> Path:
+        return self.root / "jobs"
+
+    @property
+    def tmp(self) -> Path:
+        return self.root / "tmp"
+
+    def blob(self, sha256: str, ext: str) -> Path:
+        return self.blobs / sha256[:2] / f"{sha256}{ext}"
+
+    def job(self, job_id: str) -> Path:
+        return self.jobs / job_id
+
+
+class Store:
+    """Tokens, assets and jobs of one data directory. Thread-safe: one connection per call."""
+
+    def __init__(self, root):
+        self.paths = Paths(Path(root).resolve())
+        for d in (self.paths.root, self.paths.blobs, self.paths.jobs, self.paths.tmp):
+            d.mkdir(parents=True, exist_ok=True)
+        with self.connect() as db:
+            db.executescript(_SCHEMA)
+            row = db.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone()
+            if row is None:
+                db.execute("INSERT INTO meta VALUES ('schema', ?)", (str(SCHEMA_VERSION),))
+            elif int(row[0]) != SCHEMA_VERSION:
+                raise RuntimeError(f"data directory {self.paths.root} has store schema {row[0]}, "
+                                   f"this service reads {SCHEMA_VERSION}")
+
+    @contextmanager
+    def connect(self):
+        db = sqlite3.connect(self.paths.database, timeout=30.0, isolation_level=None)
+        db.row_factory = sqlite3.Row
+        try:
+            db.execute("PRAGMA journal_mode=WAL")
+            db.execute("PRAGMA synchronous=NORMAL")
+            db.execute("PRAGMA busy_timeout=30000")
+            yield db
+        finally:
+            db.close()
+
+    # ---- tokens ------------------------------------------------------------------------------
+    def create_token(self, owner: str) -> str:
+        """A new bearer token for ``owner``; only its hash is stored, so it is shown once."""
+        token = "hr_" + secrets.token_urlsafe(32)
+        with self.connect() as db:
+            db.execute("INSERT INTO tokens VALUES (?, ?, ?, ?)", (uuid.uuid4().hex, owner, hash_token(token), time.time()))
+        return token
+
+    def owner_of(self, token: str) -> str | None:
+        with self.connect() as db:
+            row = db.execute("SELECT owner FROM tokens WHERE token_hash = ?", (hash_token(token),)).fetchone()
+        return None if row is None else row["owner"]
+
+    # ---- blobs and assets ----------------------------------------------------------------------
+    def new_tmp(self, suffix: str = "") -> Path:
+        return self.paths.tmp / f"{uuid.uuid4().hex}{suffix}"
+
+    def put_blob(self, tmp: Path, sha256: str, ext: str) -> Path:
+        """Move the finished upload ``tmp`` to its content address (kept if already there)."""
+        final = self.paths.blob(sha256, ext)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        if final.exists():
+            tmp.unlink(missing_ok=True) if tmp.is_file() else shutil.rmtree(tmp, ignore_errors=True)
+        else:
+            os.replace(tmp, final)
+        return final
+
+    def add_asset(self, owner: str, sha256: str, kind: str, name: str, size: int, path: Path, info: dict) -> tuple[dict, bool]:
+        """Record an asset for ``owner``; (asset, created) — an identical earlier upload is kept."""
+        rel = str(path.relative_to(self.paths.root))
+        with self.connect() as db:
+            cur = db.execute("INSERT OR IGNORE INTO assets VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                             (owner, sha256, kind, name, size, rel, json.dumps(info), time.time()))
+            created = cur.rowcount == 1
+        return self.asset(owner, sha256, kind), created
+
+    def asset(self, owner: str, sha256: str, kind: str | None = None) -> dict | None:
+        q = "SELECT * FROM assets WHERE owner = ? AND sha256 = ?" + (" AND kind = ?" if kind else "")
+        with self.connect() as db:
+            row = db.execute(q, (owner, sha256, kind) if kind else (owner, sha256)).fetchone()
+        return None if row is None else self._asset(row)
+
+    def asset_any_owner(self, sha256: str, kind: str) -> dict | None:
+        """The same content already validated as ``kind`` for someone (its info is reused)."""
+        with self.connect() as db:
+            row = db.execute("SELECT * FROM assets WHERE sha256 = ? AND kind = ? LIMIT 1", (sha256, kind)).fetchone()
+        return None if row is None else self._asset(row)
+
+    def assets(self, owner: str, kind: str | None = None) -> list[dict]:
+        q = "SELECT * FROM assets WHERE owner = ?" + (" AND kind = ?" if kind else "") + " ORDER BY created"
+        with self.connect() as db:
+            rows = db.execute(q, (owner, kind) if kind else (owner,)).fetchall()
+        return [self._asset(r) for r in rows]
+
+    def asset_path(self, asset: dict) -> Path:
+        return self.paths.root / asset["path"]
+
+    @staticmethod
+    def _asset(row) -> dict:
+        d = dict(row)
+        d["info"] = json.loads(d["info"])
+        d["id"] = d["sha256"]
+        return d
+
+    # ---- jobs --------------------------------------------------------------------------------
+    def create_job(self, owner: str, request: dict, idempotency_key: str | None, max_active: int) -> tuple[dict, bool]:
+        """Queue a job; (job, created). With an ``idempotency_key`` already used by ``owner``
+        the earlier job is returned (``ValueError`` if its request differs). ``LookupError``
+        when the owner already has ``max_active`` queued or running jobs."""
+        body = json.dumps(request, sort_keys=True)
+        now = time.time()
+        with self.connect() as db:
+            db.execute("BEGIN IMMEDIATE")  # the limit check and the insert are one step
+            try:
+                if idempotency_key is not None:
+                    row = db.execute("SELECT * FROM jobs WHERE owner = ? AND idempotency_key = ?",
+                                     (owner, idempotency_key)).fetchone()
+                    if row is not None:
+                        db.execute("COMMIT")
+                        if row["request"] != body:
+                            raise ValueError("this Idempotency-Key was used for a different request")
+                        return self._job(row), False
+                active = db.execute("SELECT COUNT(*) FROM jobs WHERE owner = ? AND state IN ('queued', 'running')",
+                                    (owner,)).fetchone()[0]
+                if active >= max_active:
+                    db.execute("COMMIT")
+                    raise LookupError(f"you already have {active} queued or running jobs (the limit is {max_active})")
+                job_id = uuid.uuid4().hex
+                db.execute("INSERT INTO jobs (id, owner, state, request, idempotency_key, created, updated) "
+                           "VALUES (?, ?, 'queued', ?, ?, ?, ?)", (job_id, owner, body, idempotency_key, now, now))
+                db.execute("COMMIT")
+            except sqlite3.Error:
+                db.execute("ROLLBACK")
+                raise
+        return self.job(job_id), True
+
+    def job(self, job_id: str, owner: str | None = None) -> dict | None:
+        q = "SELECT * FROM jobs WHERE id = ?" + (" AND owner = ?" if owner is not None else "")
+        with self.connect() as db:
+            row = db.execute(q, (job_id, owner) if owner is not None else (job_id,)).fetchone()
+        return None if row is None else self._job(row)
+
+    def jobs(self, owner: str | None = None, states=None, limit: int = 1000) -> list[dict]:
+        where, args = [], []
+        if owner is not None:
+            where.append("owner = ?")
+            args.append(owner)
+        if states:
+            where.append(f"state IN ({','.join('?' * len(states))})")
+            args += list(states)
+        q = "SELECT * FROM jobs" + (" WHERE " + " AND ".join(where) if where else "") + " ORDER BY created LIMIT ?"
+        with self.connect() as db:
+            return [self._job(r) for r in db.execute(q, (*args, limit)).fetchall()]
+
+    def state_counts(self) -> dict:
+        with self.connect() as db:
+            rows = db.execute("SELECT state, COUNT(*) AS n FROM jobs GROUP BY state").fetchall()
+        return {s: 0 for s in JOB_STATES} | {r["state"]: r["n"] for r in rows}
+
+    def update_job(self, job_id: str, *, only_if_state=None, **fields) -> bool:
+        """Set ``fields`` (dicts stored as JSON); with ``only_if_state`` only while the job is in
+        one of those states. True when a row changed."""
+        fields["updated"] = time.time()
+        for k in ("timings", "summary"):
+            if k in fields:
+                fields[k] = json.dumps(fields[k])
+        sets = ", ".join(f"{k} = ?" for k in fields)
+        q = f"UPDATE jobs SET {sets} WHERE id = ?"
+        args = [*fields.values(), job_id]
+        if only_if_state:
+            q += f" AND state IN ({','.join('?' * len(only_if_state))})"
+            args += list(only_if_state)
+        with self.connect() as db:
+            return db.execute(q, args).rowcount == 1
+
+    def claim_next_job(self) -> dict | None:
+        """The oldest queued job, marked running (attempts + 1), or None."""
+        with self.connect() as db:
+            db.execute("BEGIN IMMEDIATE")
+            row = db.execute("SELECT id FROM jobs WHERE state = 'queued' ORDER BY created LIMIT 1").fetchone()
+            if row is None:
+                db.execute("COMMIT")
+                return None
+            now = time.time()
+            db.execute("UPDATE jobs SET state = 'running', attempts = attempts + 1, started = ?, updated = ?, "
+                       "stage = 'starting', error = NULL WHERE id = ?", (now, now, row["id"]))
+            db.execute("COMMIT")
+        return self.job(row["id"])
+
+    @staticmethod
+    def _job(row) -> dict:
+        d = dict(row)
+        d["request"] = json.loads(d["request"])
+        d["timings"] = json.loads(d["timings"])
+        d["summary"] = json.loads(d["summary"])
+        d["cancel_requested"] = bool(d["cancel_requested"])
+        return d
+
+    # ---- artifacts ---------------------------------------------------------------------------
+    def publish_artifacts(self, job_id: str, folder: Path) -> Path:
+        """Rename a finished output ``folder`` (under tmp/) into place as the job's artifacts;
+        an earlier attempt's folder is replaced only after the new one is complete."""
+        final = self.paths.job(job_id)
+        old = None
+        if final.exists():
+            old = self.new_tmp(".old")
+            os.replace(final, old)
+        os.replace(folder, final)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+        return final
