@@ -118,6 +118,22 @@ def test_bad_override_names_the_key():
         load_config(None, overrides={"weights": {"lambda_m": -0.1}})
 
 
+def test_dask_scheduler_key(tmp_path):
+    assert RetargetConfig.preset("paper").dask_scheduler == ""  # the local pool by default
+    p = tmp_path / "run.toml"
+    p.write_text('dask_scheduler = "tcp://10.0.0.5:8786"\n')
+    cfg = load_config(p)
+    assert cfg.dask_scheduler == "tcp://10.0.0.5:8786" and cfg.to_dict()["dask_scheduler"] == cfg.dask_scheduler
+    for good in ("tcp://127.0.0.1:1", "tcp://dask-scheduler.internal:65535", "tcp://[::1]:8786", ""):
+        assert load_config(None, overrides={"dask_scheduler": good}).dask_scheduler == good
+    for bad in ("127.0.0.1:8786", "tcp://host", "tcp://host:0", "tcp://host:70000", "http://host:8786",
+                "tcp://host:8786/x", "tcp://ho st:8786", 8786):
+        with pytest.raises(InputError) as info:
+            load_config(None, overrides={"dask_scheduler": bad})
+        assert info.value.element == "dask_scheduler", bad
+        assert "dask_scheduler" in str(info.value)
+
+
 def test_missing_and_malformed_file(tmp_path):
     with pytest.raises(InputError, match="not found"):
         load_config(tmp_path / "nope.toml")

@@ -27,6 +27,8 @@ file and an optional override dict applied on top (:func:`load_config`). The TOM
 keys mirror the dataclasses::
 
     workers = 4
+    dask_scheduler = "tcp://10.0.0.5:8786"   # optional: frame chunks on a Dask cluster
+    atlas_cache = "/var/cache/handretarget/atlas"   # optional: built atlases kept on disk
 
     [weights]
     lambda_j = 50.0
@@ -49,6 +51,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import re
 import tomllib
 import types
 import typing
@@ -91,6 +94,10 @@ MARKER_DISTANCES = ("squared", "huber")
 
 #: Smallest control-point count of a cubic B-spline.
 MIN_CONTROL_POINTS = 4
+
+#: ``dask_scheduler`` values: ``tcp://HOST:PORT`` (HOST a name, an IPv4 address or a bracketed
+#: IPv6 address).
+_DASK_ADDRESS = re.compile(r"tcp://(?:[A-Za-z0-9](?:[A-Za-z0-9.-]*[A-Za-z0-9])?|\[[0-9A-Fa-f:.]+\]):(\d{1,5})")
 
 
 @dataclass
@@ -317,6 +324,27 @@ class RetargetConfig:
         DOF are re-solved;
         (7) refinement stops after 3 rounds in a row without fewer violations
         (``Refinement.patience``) and keeps the best round.
+
+    Top-level keys:
+
+    ``workers``
+        Parallel frame solves in a local process pool (1 = in-process). It also sets how many
+        sequences the root-only pass is cut into (each seeded from a rigid fit at its first
+        frame), so it is part of what determines the result.
+    ``method``
+        ``"contacts"`` (the paper) or a contact-free baseline (:data:`METHODS`).
+    ``dask_scheduler``
+        ``""`` (default): the local pool. ``"tcp://HOST:PORT"``: the frame chunks of the
+        passes run on the Dask ``distributed`` cluster behind that scheduler instead (any
+        number of ``dask worker`` processes with this package installed); a chunk whose worker
+        dies is re-run on another. ``workers`` still cuts the root-only pass, so a run gives
+        the same trajectory on a cluster as locally with the same ``workers``.
+    ``atlas_cache``
+        ``""`` (default): the contact-transfer atlas is built in memory for the run. A folder
+        path (made when missing; relative to the working directory, ``~`` expanded): built
+        atlases are also saved there, one ``<sha256 key>.npz`` per (source surface, target
+        surface, annotations), and later runs in any process load them instead of rebuilding
+        (:func:`~retarget_core.transfer.atlas.get_atlas`). It does not change the result.
     """
 
     weights: Weights = field(default_factory=Weights)
@@ -331,6 +359,10 @@ class RetargetConfig:
     #: the per-frame objective of the finger passes: "contacts" (the paper's method) or one of
     #: the contact-free baselines "fingertips" / "keyvectors" (:mod:`~retarget_core.solve.baselines`)
     method: str = "contacts"
+    #: "" = local process pool; "tcp://HOST:PORT" = run frame chunks on that Dask scheduler's workers
+    dask_scheduler: str = ""
+    #: "" = no disk cache; a folder = keep built contact-transfer atlases there across runs
+    atlas_cache: str = ""
 
     @classmethod
     def preset(cls, name: str = "default") -> "RetargetConfig":
@@ -415,6 +447,13 @@ class RetargetConfig:
         positive(self.workers, "workers")
         if self.method not in METHODS:
             fail(f"must be one of {', '.join(METHODS)}, got {self.method!r}", "method")
+        if self.dask_scheduler:
+            m = _DASK_ADDRESS.fullmatch(self.dask_scheduler)
+            if m is None or not 1 <= int(m.group(1)) <= 65535:
+                fail(f"expected \"\" or a scheduler address tcp://HOST:PORT, got {self.dask_scheduler!r}",
+                     "dask_scheduler")
+        if "\0" in self.atlas_cache:
+            fail("a folder path must not contain a NUL character", "atlas_cache")
 
 
 # --------------------------------------------------------------------------------------------

@@ -11,18 +11,27 @@ Everything that does not depend on the contacts (the curves, one log map per lan
 hand, the charts' layouts) is computed once per hand pair; :func:`get_atlas` caches it, so a
 second clip onto the same hand pays nothing for set-up. Transfer is then a handful of
 vectorised look-ups per contact.
+
+Given a ``cache_dir``, :func:`get_atlas` also keeps built atlases on disk for other processes:
+``<cache_dir>/<key>.npz``, ``key`` = :func:`atlas_key` (sha256 of the surfaces, the
+annotations, the options and :data:`ATLAS_CACHE_VERSION`), holding the plain arrays of
+:meth:`Atlas.to_arrays` (np.savez, no pickled objects) plus ``cache_version`` and ``cache_key``.
+Files are written atomically; an unreadable, foreign or stale file is rebuilt and replaced.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import logging
 from collections import OrderedDict
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
+from ..files import atomic_path
 from ..mesh.surface_points import SurfacePoints
 from .annotations import Annotations, annotations_to_dict, resolve_points
 from .axial_curves import Curve, SourceCurve, build_source_curve, reconstruct_curve
@@ -30,6 +39,12 @@ from .geodesics import LogChart, SurfaceGeometry
 
 #: Target charts are laid out within this geodesic radius of their landmark (metres).
 CHART_RADIUS = 0.06
+
+#: Version of the on-disk atlas (part of the cache key and stored in the file): bump it whenever
+#: the arrays of :meth:`Atlas.to_arrays` or the way an atlas is built change.
+ATLAS_CACHE_VERSION = 1
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -144,6 +159,95 @@ class Atlas:
     def n_landmarks(self) -> int:
         return len(self.landmark_curve)
 
+    # ---- plain-array form (the on-disk cache) ---------------------------------------------
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The expensive results as plain numeric arrays (L landmarks, C curves, V / F source
+        vertices / faces, K the charts' laid-out faces, concatenated landmark by landmark):
+        curve_sizes (C,) landmarks per curve; source_curve_{faces (L,), barycentric (L, 3),
+        positions (L, 3) m, directions (L, 3), turning (L,) rad, lengths (L - C,) m};
+        target_curve_kept (C,) and target_curve_{faces, barycentric, positions, directions}
+        (zeros on discarded curves); source_coords (L, V, 2) m float32; source_valid_faces
+        (L, F); vertex_landmark (V,); {source,target}_chart_{offsets (L+1,), face_ids (K,),
+        tri (K, 3, 2) m, reach (K,) m} (a target landmark of a discarded curve has no faces).
+        The surfaces' geodesic solvers are not part of it (:meth:`from_arrays` gets them)."""
+        n_curves = len(self.curve_names)
+        out = {"curve_sizes": np.bincount(self.landmark_curve, minlength=n_curves).astype(np.int64)}
+        for name in _CURVE_FIELDS:
+            out[f"source_curve_{name}"] = np.concatenate([getattr(c, name) for c in self.source_curves])
+            out[f"target_curve_{name}"] = np.concatenate([
+                getattr(t, name) if t is not None else np.zeros_like(getattr(s, name))
+                for s, t in zip(self.source_curves, self.target_curves)])
+        out["source_curve_turning"] = np.concatenate([c.turning for c in self.source_curves])
+        out["source_curve_lengths"] = np.concatenate([c.lengths for c in self.source_curves])
+        out["target_curve_kept"] = np.array([t is not None for t in self.target_curves], dtype=bool)
+        out["source_coords"] = self.source_coords
+        out["source_valid_faces"] = self.source_valid_faces
+        out["vertex_landmark"] = self.vertex_landmark
+        for side, charts in (("source", self.source_charts), ("target", self.target_charts)):
+            parts = [c.to_arrays() for c in charts if c is not None] or [
+                (np.zeros(0, np.int64), np.zeros((0, 3, 2)), np.zeros(0))]
+            sizes = [0 if c is None else len(c.face_ids) for c in charts]
+            out[f"{side}_chart_offsets"] = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+            for k, name in enumerate(("face_ids", "tri", "reach")):
+                out[f"{side}_chart_{name}"] = np.concatenate([p[k] for p in parts])
+        return out
+
+    @classmethod
+    def from_arrays(cls, source: SurfaceGeometry, target: SurfaceGeometry, annotations: Annotations,
+                    arrays, *, reconstruction: str = "chart") -> "Atlas":
+        """The atlas whose :meth:`to_arrays` gave ``arrays`` (a mapping of name to array), on the
+        same surfaces and annotations; transfers exactly as the original. Computes no log map.
+        Raises ValueError (or KeyError) when the arrays do not fit the surfaces / annotations."""
+        if reconstruction not in ("chart", "trace"):
+            raise InputError(f"reconstruction must be 'chart' or 'trace', got {reconstruction!r}")
+        annotations.check_meshes(source.faces, len(source.vertices), target.faces, len(target.vertices))
+        n_curves = len(annotations.curves)
+        nv, nf = len(source.vertices), len(source.faces)
+
+        def get(name, shape, dtype):
+            a = arrays[name]
+            if a.dtype != np.dtype(dtype) or a.shape != tuple(shape):
+                raise ValueError(f"atlas array {name}: {a.dtype}{a.shape}, expected {np.dtype(dtype)}{tuple(shape)}")
+            return a
+
+        sizes = get("curve_sizes", (n_curves,), np.int64)
+        if n_curves == 0 or (sizes < 1).any():
+            raise ValueError("atlas arrays: every curve needs a landmark")
+        n = int(sizes.sum())
+        atlas = cls.__new__(cls)
+        atlas.reconstruction = reconstruction
+        atlas.annotations = annotations
+        atlas.source, atlas.target = source, target
+        atlas.curve_names = [c.name for c in annotations.curves]
+        atlas.landmark_curve = np.repeat(np.arange(n_curves, dtype=np.int64), sizes)
+        atlas.landmark_index = np.concatenate([np.arange(k, dtype=np.int64) for k in sizes])
+        starts = np.concatenate([[0], np.cumsum(sizes)])
+        src = {name: get(f"source_curve_{name}", (n,) + tail, dtype) for name, (tail, dtype) in _CURVE_FIELDS.items()}
+        tgt = {name: get(f"target_curve_{name}", (n,) + tail, dtype) for name, (tail, dtype) in _CURVE_FIELDS.items()}
+        turning = get("source_curve_turning", (n,), np.float64)
+        lengths = get("source_curve_lengths", (n - n_curves,), np.float64)
+        kept = get("target_curve_kept", (n_curves,), bool)
+        if list(kept) != [not c.discard for c in annotations.curves]:
+            raise ValueError("atlas arrays: discarded curves differ from the annotations")
+        atlas.source_curves, atlas.target_curves = [], []
+        for ci, name in enumerate(atlas.curve_names):
+            rows = slice(starts[ci], starts[ci + 1])
+            atlas.source_curves.append(SourceCurve(
+                name, *(src[f][rows] for f in _CURVE_FIELDS),
+                lengths=lengths[starts[ci] - ci:starts[ci + 1] - ci - 1], turning=turning[rows]))
+            atlas.target_curves.append(Curve(name, *(tgt[f][rows] for f in _CURVE_FIELDS)) if kept[ci] else None)
+        for curves, faces in ((atlas.source_curves, nf), (atlas.target_curves, len(target.faces))):
+            if any(c is not None and ((c.faces < 0) | (c.faces >= faces)).any() for c in curves):
+                raise ValueError("atlas arrays: a landmark face is out of range")
+        atlas.source_coords = get("source_coords", (n, nv, 2), np.float32)
+        atlas.source_valid_faces = get("source_valid_faces", (n, nf), bool)
+        atlas.vertex_landmark = get("vertex_landmark", (nv,), np.int64)
+        if ((atlas.vertex_landmark < 0) | (atlas.vertex_landmark >= n)).any():
+            raise ValueError("atlas arrays: vertex_landmark out of range")
+        atlas.source_charts = _unpack_charts(arrays, "source", np.ones(n, dtype=bool), nf, get)
+        atlas.target_charts = _unpack_charts(arrays, "target", kept[atlas.landmark_curve], len(target.faces), get)
+        return atlas
+
     def _trace_from_landmark(self, m: int, radius: np.ndarray, angle: np.ndarray):
         """Exponential map at target landmark m: trace (radius, angle) geodesics, angle measured
         counter-clockwise about the outward normal from the curve's direction."""
@@ -242,6 +346,28 @@ class Atlas:
         return TransferredContacts(face, bary, landmark, curve, dropped, radius, angle)
 
 
+#: Per-landmark curve fields stored by :meth:`Atlas.to_arrays`: trailing shape and dtype.
+_CURVE_FIELDS = {"faces": ((), np.int64), "barycentric": ((3,), np.float64),
+                 "positions": ((3,), np.float64), "directions": ((3,), np.float64)}
+
+
+def _unpack_charts(arrays, side: str, charted: np.ndarray, n_faces: int, get) -> list:
+    """The LogCharts (None where not ``charted`` (L,)) from ``{side}_chart_*`` arrays."""
+    n = len(charted)
+    offsets = get(f"{side}_chart_offsets", (n + 1,), np.int64)
+    steps = np.diff(offsets)
+    if offsets[0] != 0 or (steps < 0).any() or ((steps > 0) != charted).any():
+        raise ValueError(f"atlas arrays: bad {side} chart offsets")
+    k = int(offsets[-1])
+    face_ids = get(f"{side}_chart_face_ids", (k,), np.int64)
+    tri = get(f"{side}_chart_tri", (k, 3, 2), np.float64)
+    reach = get(f"{side}_chart_reach", (k,), np.float64)
+    if ((face_ids < 0) | (face_ids >= n_faces)).any():
+        raise ValueError(f"atlas arrays: {side} chart face out of range")
+    return [LogChart.from_arrays(face_ids[a:b], tri[a:b], reach[a:b]) if ok else None
+            for a, b, ok in zip(offsets[:-1], offsets[1:], charted)]
+
+
 def _with_element(fn, element: str):
     """Run fn, re-raising an InputError with the annotation element in front."""
     try:
@@ -257,32 +383,95 @@ _CACHE: "OrderedDict[str, Atlas]" = OrderedDict()
 _CACHE_SIZE = 8
 
 
-def _digest(*arrays, extra: str = "") -> str:
-    h = hashlib.sha1()
-    for a in arrays:
-        a = np.ascontiguousarray(a)
-        h.update(str(a.shape).encode())
+def _potpourri3d_version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("potpourri3d")
+    except Exception:  # pragma: no cover - not installed as a distribution
+        return "unknown"
+
+
+def atlas_key(source_vertices: np.ndarray, source_faces: np.ndarray, target_vertices: np.ndarray,
+              target_faces: np.ndarray, annotations: Annotations, *, chart_radius: float = CHART_RADIUS,
+              reconstruction: str = "chart") -> str:
+    """sha256 (64 hex digits) naming the atlas of these surfaces (vertices (V, 3) m as float64,
+    faces (F, 3) as int64: dtype, shape and bytes), the annotations' canonical JSON, the options,
+    :data:`ATLAS_CACHE_VERSION` and the potpourri3d version."""
+    h = hashlib.sha256()
+    h.update(f"handretarget.atlas/{ATLAS_CACHE_VERSION}/potpourri3d {_potpourri3d_version()}\0".encode())
+    for a, dtype in ((source_vertices, np.float64), (source_faces, np.int64),
+                     (target_vertices, np.float64), (target_faces, np.int64)):
+        a = np.ascontiguousarray(a, dtype=dtype)
+        h.update(f"{a.dtype.str}{a.shape}\0".encode())
         h.update(a.tobytes())
-    h.update(extra.encode())
+    h.update(json.dumps(annotations_to_dict(annotations), sort_keys=True, separators=(",", ":")).encode())
+    h.update(f"\0chart_radius={float(chart_radius)!r}\0reconstruction={reconstruction}".encode())
     return h.hexdigest()
 
 
 def get_atlas(source_vertices: np.ndarray, source_faces: np.ndarray, target_vertices: np.ndarray,
-              target_faces: np.ndarray, annotations: Annotations, *, workers: int = 1) -> Atlas:
-    """The atlas of a hand pair, built once per (surfaces, annotations) and kept in memory;
-    ``workers`` processes build its charts."""
-    key = _digest(source_vertices, source_faces, target_vertices, target_faces,
-                  extra=json.dumps(annotations_to_dict(annotations), sort_keys=True))
+              target_faces: np.ndarray, annotations: Annotations, *, workers: int = 1,
+              chart_radius: float = CHART_RADIUS, reconstruction: str = "chart", cache_dir=None) -> Atlas:
+    """The atlas of a hand pair, built once per (surfaces, annotations, options) and kept in
+    memory; ``workers`` processes build its charts. With ``cache_dir`` (a folder, made when
+    missing) a built atlas is also saved to / loaded from ``<cache_dir>/<atlas_key>.npz``, so
+    other processes skip the build; a bad cache file is rebuilt, an unwritable folder only
+    logs a warning."""
+    key = atlas_key(source_vertices, source_faces, target_vertices, target_faces, annotations,
+                    chart_radius=chart_radius, reconstruction=reconstruction)
+    path = Path(cache_dir).expanduser() / f"{key}.npz" if cache_dir else None
     if key in _CACHE:
         _CACHE.move_to_end(key)
-        return _CACHE[key]
-    atlas = Atlas(SurfaceGeometry(source_vertices, source_faces, name="source surface"),
-                  SurfaceGeometry(target_vertices, target_faces, name="target surface"), annotations,
-                  workers=workers)
+        atlas = _CACHE[key]
+        if path is not None and not path.is_file():
+            _save_cached(path, key, atlas)
+        return atlas
+    source = SurfaceGeometry(source_vertices, source_faces, name="source surface")
+    target = SurfaceGeometry(target_vertices, target_faces, name="target surface")
+    atlas = _load_cached(path, key, source, target, annotations, reconstruction) if path is not None else None
+    if atlas is None:
+        atlas = Atlas(source, target, annotations, chart_radius=chart_radius, reconstruction=reconstruction,
+                      workers=workers)
+        if path is not None:
+            _save_cached(path, key, atlas)
     _CACHE[key] = atlas
     while len(_CACHE) > _CACHE_SIZE:
         _CACHE.popitem(last=False)
     return atlas
+
+
+def _load_cached(path: Path, key: str, source: SurfaceGeometry, target: SurfaceGeometry,
+                 annotations: Annotations, reconstruction: str) -> Atlas | None:
+    """The atlas saved at ``path``, or None when it is missing or unusable (never raises for a
+    bad file: truncated, not an npz, pickled objects, another version or key)."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {name: data[name] for name in data.files}
+        if int(arrays["cache_version"]) != ATLAS_CACHE_VERSION or str(arrays["cache_key"]) != key:
+            raise ValueError("another cache version or key")
+        return Atlas.from_arrays(source, target, annotations, arrays, reconstruction=reconstruction)
+    except InputError:
+        raise  # the annotations do not fit the surfaces: the build would say the same
+    except Exception as err:  # any unreadable file is rebuilt (and replaced) instead
+        log.info("ignoring atlas cache file %s (%s: %s); rebuilding", path, type(err).__name__, err)
+        return None
+
+
+def _save_cached(path: Path, key: str, atlas: Atlas) -> None:
+    """Write ``atlas`` to ``path`` (np.savez of plain arrays) through a temporary file in the
+    same folder and an atomic rename; an OSError (read-only folder, full disk) is logged."""
+    arrays = atlas.to_arrays()
+    arrays["cache_version"] = np.array(ATLAS_CACHE_VERSION, dtype=np.int64)
+    arrays["cache_key"] = np.array(key)
+    try:
+        with atomic_path(path, suffix=".npz.tmp") as tmp:
+            with open(tmp, "wb") as handle:
+                np.savez(handle, **arrays)
+    except (OSError, ValueError) as err:
+        log.warning("cannot write atlas cache file %s: %s", path, err)
 
 
 # ---- per-landmark charts, optionally in worker processes ----------------------------------------

@@ -28,21 +28,24 @@ class ClipTransfer:
         return slice(int(self.pairs.frame_offsets[f]), int(self.pairs.frame_offsets[f + 1]))
 
 
-def atlas_for(source: Rig, target: Rig, annotations: Annotations, *, workers: int = 1) -> Atlas:
-    """The (cached) atlas of two rigs' rest surfaces, built by ``workers`` processes."""
+def atlas_for(source: Rig, target: Rig, annotations: Annotations, *, workers: int = 1,
+              cache_dir=None) -> Atlas:
+    """The (cached) atlas of two rigs' rest surfaces, built by ``workers`` processes; with
+    ``cache_dir`` (a folder) also kept on disk for other processes (see :func:`get_atlas`)."""
     return get_atlas(source.surface.vertices, source.surface.faces, target.surface.vertices, target.surface.faces,
-                     annotations, workers=workers)
+                     annotations, workers=workers, cache_dir=cache_dir)
 
 
 def transfer_clip(pairs: ContactPairs, source: Rig, target: Rig, annotations: Annotations, *,
-                  workers: int = 1) -> ClipTransfer:
+                  workers: int = 1, cache_dir=None) -> ClipTransfer:
     """Carry every paired contact of every frame (the hand ends of ``pairs``, on ``source``'s
-    surface) onto ``target`` in one vectorised pass (``workers``: see :func:`atlas_for`)."""
+    surface) onto ``target`` in one vectorised pass (``workers``, ``cache_dir``: see
+    :func:`atlas_for`)."""
     if pairs.n_hand_faces != len(source.surface.faces):
         raise InputError(
             f"the contact pairs were made on a hand with {pairs.n_hand_faces} faces; the source rig "
             f"{source.name!r} has {len(source.surface.faces)}", element="source rig")
-    atlas = atlas_for(source, target, annotations, workers=workers)
+    atlas = atlas_for(source, target, annotations, workers=workers, cache_dir=cache_dir)
     contacts = atlas.transfer(SurfacePoints(pairs.hand_face, pairs.hand_barycentric))
     return ClipTransfer(atlas, pairs, contacts)
 

@@ -266,6 +266,19 @@ class LogChart:
         self.reach = distance[faces[keep]].mean(axis=1)
         self._tree = cKDTree(self.tri.mean(axis=1))
 
+    def to_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The laid-out part: face ids (K,), their triangles in the chart (K, 3, 2) m and the
+        geodesic reach of each (K,) m; :meth:`from_arrays` rebuilds the same chart."""
+        return self.face_ids, self.tri, self.reach
+
+    @classmethod
+    def from_arrays(cls, face_ids: np.ndarray, tri: np.ndarray, reach: np.ndarray) -> "LogChart":
+        """The chart of :meth:`to_arrays`' output (only the point-location tree is rebuilt)."""
+        chart = cls.__new__(cls)
+        chart.face_ids, chart.tri, chart.reach = face_ids, tri, reach
+        chart._tree = cKDTree(tri.mean(axis=1))
+        return chart
+
     def locate(self, xy: np.ndarray, k: int = 24):
         """Faces (N,) and barycentrics (N, 3) of chart points xy (N, 2); points outside the
         chart's injective part go to the nearest triangle (clamped)."""
