@@ -74,6 +74,8 @@ def run_job(store: Store, job_id: str, *, frame_workers: int = 1, dask_scheduler
 
         overrides = dict(request.get("overrides") or {})
         overrides["workers"] = frame_workers
+        # built atlases are kept per (source, target, annotations): a rig's second job skips the build
+        overrides["atlas_cache"] = str(store.paths.atlas_cache)
         if dask_scheduler:
             overrides["dask_scheduler"] = dask_scheduler
         config = load_config(None, request.get("preset", "default"), overrides)

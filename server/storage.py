@@ -6,6 +6,8 @@ blobs and artifacts, all under one data directory::
     DATA/blobs/ab/<sha256>.d/     an unpacked robot bundle (URDF / MJCF zip)
     DATA/jobs/<job id>/           a finished job's artifacts (appears whole: renamed into place)
     DATA/tmp/                     uploads and job outputs being written
+    DATA/cache/atlas/             built contact atlases, reused by later jobs (safe to delete)
+    DATA/logs/<job id>.log        each job process's output
 
 Every write that others may read is atomic: a blob is written under tmp/ and renamed into
 place, a job's artifact folder is renamed into place whole, and a job only becomes
@@ -79,6 +81,11 @@ class Paths:
     @property
     def tmp(self) -> Path:
         return self.root / "tmp"
+
+    @property
+    def atlas_cache(self) -> Path:
+        """Built contact atlases (see ``atlas_cache`` in the core's config); safe to delete."""
+        return self.root / "cache" / "atlas"
 
     def blob(self, sha256: str, ext: str) -> Path:
         return self.blobs / sha256[:2] / f"{sha256}{ext}"

@@ -20,6 +20,8 @@ from ..storage import Store
 router = APIRouter(prefix="/v1", tags=["assets"])
 Kind = Literal["rig", "annotations", "clip", "file"]
 ERRORS = {401: {"model": Problem}, 404: {"model": Problem}, 413: {"model": Problem}, 422: {"model": Problem}}
+# a JSON body that cannot be read at all (e.g. not UTF-8) is refused by FastAPI with 400
+BAD_BODY = {400: {"model": Problem, "description": "the body could not be parsed"}}
 
 
 def public(asset: dict) -> dict:
@@ -135,7 +137,7 @@ def _save_new_asset(store: Store, owner: str, kind: str, name: str, write) -> tu
     return final, sha, len(data)
 
 
-@router.post("/clips/import-grab", response_model=Asset, status_code=201, responses=ERRORS)
+@router.post("/clips/import-grab", response_model=Asset, status_code=201, responses=ERRORS | BAD_BODY)
 def import_grab(body: GrabImport, response: Response, owner: str = Depends(current_owner),
                 store: Store = Depends(get_store)):
     """Convert a GRAB sequence (with the user's MANO model and the object's mesh, uploaded as
@@ -160,7 +162,7 @@ def import_grab(body: GrabImport, response: Response, owner: str = Depends(curre
     return public(asset)
 
 
-@router.post("/annotations/propose", response_model=Asset, status_code=201, responses=ERRORS)
+@router.post("/annotations/propose", response_model=Asset, status_code=201, responses=ERRORS | BAD_BODY)
 def propose(body: ProposeRequest, response: Response, owner: str = Depends(current_owner),
             store: Store = Depends(get_store)):
     """Proposed annotations (markers by name, one axial curve per finger and two on the palm)

@@ -15,7 +15,7 @@ from ..deps import current_owner, get_settings, get_store
 from ..schemas import Job, JobCreate, JobList, Problem
 from ..settings import Settings
 from ..storage import FINAL_STATES, JOB_STATES, Store
-from .assets import owned
+from .assets import BAD_BODY, owned
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 JOB_ID = r"^[0-9a-f]{32}$"
@@ -24,7 +24,7 @@ ARTIFACTS = {  # name -> media type; nothing else under a job's folder is ever s
     "result.json": "application/json", "animation.json": "application/json", "metrics.json": "application/json",
     "intersection.png": "image/png", "contact_error.png": "image/png", "frames.png": "image/png",
 }
-SERVICE_KEYS = ("workers", "dask_scheduler")
+SERVICE_KEYS = ("workers", "dask_scheduler", "atlas_cache")
 ERRORS = {401: {"model": Problem}, 404: {"model": Problem}, 409: {"model": Problem}, 422: {"model": Problem},
           429: {"model": Problem}}
 
@@ -78,7 +78,7 @@ def check_request(body: JobCreate, owner: str, store: Store) -> None:
                                      f"POST /v1/annotations/propose)")
 
 
-@router.post("", response_model=Job, status_code=201, responses=ERRORS | {200: {"model": Job}})
+@router.post("", response_model=Job, status_code=201, responses=ERRORS | BAD_BODY | {200: {"model": Job}})
 def create_job(body: JobCreate, response: Response, owner: str = Depends(current_owner),
                idempotency_key: str | None = Header(default=None, max_length=200,
                                                     description="repeat a submission safely: the same key returns "

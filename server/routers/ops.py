@@ -6,6 +6,7 @@ from fastapi import APIRouter, Depends, HTTPException, Request, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from ..deps import current_owner, get_store
+from ..schemas import Problem
 from ..storage import Store
 
 router = APIRouter(tags=["operations"])
@@ -29,7 +30,7 @@ def ready(request: Request, store: Store = Depends(get_store)):
     return {"status": "ready", "jobs": counts}
 
 
-@router.get("/metrics", response_class=Response)
+@router.get("/metrics", response_class=Response, responses={401: {"model": Problem}})
 def metrics(request: Request, owner: str = Depends(current_owner)):
     """Prometheus text format: requests, latencies, jobs by state."""
     return Response(generate_latest(request.app.state.metrics.registry), media_type=CONTENT_TYPE_LATEST)

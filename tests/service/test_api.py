@@ -4,7 +4,6 @@ the core's own output), ownership, and bad requests that get a 4xx saying what t
 from __future__ import annotations
 
 import json
-import threading
 
 import numpy as np
 import pytest
@@ -158,6 +157,8 @@ def test_bad_job_requests_name_the_field(service, alice, inputs, finished, tmp_p
         (dict(ids, overrides={"solver.maxevals": 5}), 422, "solver.maxevals"),
         (dict(ids, overrides={"weights.lambda_m": -1}), 422, "weights.lambda_m"),
         (dict(ids, overrides={"workers": 8}), 422, "set by the service"),
+        (dict(ids, overrides={"atlas_cache": "/etc"}), 422, "atlas_cache is set by the service"),
+        (dict(ids, overrides={"dask_scheduler": "tcp://10.0.0.1:8786"}), 422, "set by the service"),
         (dict(ids, preset="fastest"), 422, "preset"),
         (dict(ids, clip="not-a-hash"), 422, "clip"),
     ]
