@@ -236,3 +236,28 @@ def test_cancel_a_running_job_and_the_active_job_limit(tmp_path_factory, inputs)
         assert third["state"] == "queued"
     finally:
         svc.stop()
+
+
+def test_readiness_docs_and_metrics(service, alice, finished):
+    import urllib.request
+
+    with urllib.request.urlopen(f"{service.url}/v1/ready") as resp:
+        doc = json.loads(resp.read())
+    assert doc["status"] == "ready" and doc["jobs"]["succeeded"] >= 1
+    with urllib.request.urlopen(f"{service.url}/openapi.json") as resp:
+        schema = json.loads(resp.read())
+    assert {"/v1/jobs", "/v1/jobs/{job_id}/events", "/v1/assets/{kind}"} <= set(schema["paths"])
+    assert schema["info"]["version"] == "1"
+    with urllib.request.urlopen(f"{service.url}/docs") as resp:
+        assert b"swagger" in resp.read().lower()
+    text = alice._request("GET", "/metrics", raw=True).decode()
+    succeeded = [line for line in text.splitlines() if line.startswith('handretarget_jobs{state="succeeded"}')]
+    assert succeeded and float(succeeded[0].split()[-1]) >= 1
+    assert 'handretarget_http_requests_total{method="POST",route="/v1/jobs",status="201"}' in text
+    assert "handretarget_http_request_seconds_bucket" in text
+    with pytest.raises(ServiceError) as err:  # metrics need a token
+        type(alice)(service.url, "hr_wrong")._request("GET", "/metrics", raw=True)
+    assert err.value.status == 401
+    # one JSON log line per request, with its status and the caller
+    lines = [json.loads(line) for line in service.log.read_text().splitlines() if line.startswith("{")]
+    assert any(r.get("path") == "/v1/jobs" and r.get("method") == "POST" and r.get("owner") == "alice" for r in lines)
