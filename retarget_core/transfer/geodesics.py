@@ -58,7 +58,9 @@ class SurfaceGeometry:
         self.vertex_normals = vertex_normals(self.vertices, self.faces)
         tri = self.vertices[self.faces]
         fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        self.face_normals = fn / np.linalg.norm(fn, axis=1, keepdims=True)
+        length = np.linalg.norm(fn, axis=1, keepdims=True)
+        # a zero-area face (robot wrappers have a few) gets a zero normal, not NaN
+        self.face_normals = np.divide(fn, length, out=np.zeros_like(fn), where=length > 0)
         self._aabb = igl.AABB()
         self._aabb.init(self.vertices, self.faces)
         self._component = None
