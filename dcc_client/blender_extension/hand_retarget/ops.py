@@ -1,0 +1,382 @@
+"""Operators: connection test, rig export, annotations (propose, load, save, curve list), job
+submit / cancel, result import."""
+
+import json
+import os
+import uuid
+
+import bpy
+from bpy.props import BoolProperty, EnumProperty, StringProperty
+from bpy_extras.io_utils import ExportHelper, ImportHelper
+
+from . import anim_import, annotations, jobs, rig_export
+from .client import ServiceError
+
+ERRORS = (ServiceError, OSError, ValueError, RuntimeError, jobs.ConnectionSettingsError)
+
+
+# ---- helpers --------------------------------------------------------------------------------------
+def targets(context):
+    """(armature, skinned mesh) from the active / selected objects; either may be None."""
+    obj = context.active_object
+    arm = None
+    if obj is not None and obj.type == 'ARMATURE':
+        arm = obj
+    elif obj is not None and obj.type == 'MESH':
+        arm = next((m.object for m in obj.modifiers if m.type == 'ARMATURE' and m.object), None)
+    if arm is None:
+        return None, None
+    prefer = [obj] + list(context.selected_objects or [])
+    return arm, rig_export.skinned_mesh(arm, prefer=prefer)
+
+
+def work_folder(*parts) -> str:
+    """A folder for exported and downloaded files: beside the saved .blend, else Blender's temp."""
+    base = bpy.path.abspath("//hand_retarget") if bpy.data.filepath else os.path.join(bpy.app.tempdir, "hand_retarget")
+    folder = os.path.join(base, *parts)
+    os.makedirs(folder, exist_ok=True)
+    return folder
+
+
+def export_and_upload(context, arm, mesh, filepath: str = "", upload: bool = True) -> dict:
+    """Export the rig (and upload it); stores file, id and units on the armature."""
+    filepath = bpy.path.abspath(filepath) if filepath else os.path.join(work_folder(), f"{bpy.path.clean_name(arm.name)}.usda")
+    info = rig_export.export_rig(context, arm, mesh, filepath)
+    settings = arm.hand_retarget
+    settings.rig_file, settings.meters_per_unit = filepath, info["meters_per_unit"]
+    if upload:
+        asset = jobs.make_client(context).upload("rig", filepath, name=os.path.basename(filepath))
+        settings.rig_id = asset["id"]
+        info["asset"] = asset
+    info["filepath"] = filepath
+    return info
+
+
+class _Op:
+    bl_options = {'REGISTER'}
+
+    def fail(self, err) -> set:
+        self.report({'ERROR'}, str(err))
+        return {'CANCELLED'}
+
+
+# ---- connection / rig -----------------------------------------------------------------------------
+class HAND_RETARGET_OT_ping(_Op, bpy.types.Operator):
+    """Check that the service answers and accepts the token"""
+    bl_idname = "hand_retarget.ping"
+    bl_label = "Test Connection"
+
+    def execute(self, context):
+        try:
+            c = jobs.make_client(context, timeout=10)
+            health = c.health()
+            c.assets("rig")  # needs a valid token
+        except ERRORS as err:
+            return self.fail(err)
+        self.report({'INFO'}, f"service {health.get('status', 'ok')}, token accepted")
+        return {'FINISHED'}
+
+
+class HAND_RETARGET_OT_add_root_bone(_Op, bpy.types.Operator):
+    """Insert a bone at the armature origin with identity rest above the current root bones (the
+    service's solver moves the hand through such a root)"""
+    bl_idname = "hand_retarget.add_root_bone"
+    bl_label = "Add Root Bone"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    def execute(self, context):
+        arm, _ = targets(context)
+        if arm is None:
+            return self.fail("select an armature")
+        name = rig_export.add_root_bone(context, arm)
+        self.report({'INFO'}, f"added root bone {name!r}")
+        return {'FINISHED'}
+
+
+class HAND_RETARGET_OT_export_rig(_Op, bpy.types.Operator):
+    """Export the armature and its skinned mesh as a Hand Retarget rig (USD with the DOF spec)
+    and upload it to the service"""
+    bl_idname = "hand_retarget.export_rig"
+    bl_label = "Export Rig"
+
+    filepath: StringProperty(subtype='FILE_PATH', default="", options={'SKIP_SAVE'},
+                             description="Where to write the USD (empty: a work folder)")
+    upload: BoolProperty(default=True, name="Upload", options={'SKIP_SAVE'})
+
+    def execute(self, context):
+        arm, mesh = targets(context)
+        if arm is None:
+            return self.fail("select an armature (or its mesh)")
+        try:
+            info = export_and_upload(context, arm, mesh, self.filepath, self.upload)
+        except ERRORS as err:
+            return self.fail(err)
+        for w in info["warnings"]:
+            self.report({'WARNING'}, w)
+        self.report({'INFO'}, f"rig {info['rig_name']}: {len(info['dofs'])} DOFs, {info['vertices']} vertices"
+                              + (f", uploaded {info['asset']['id'][:12]}" if self.upload else ""))
+        return {'FINISHED'}
+
+
+# ---- annotations ----------------------------------------------------------------------------------
+class HAND_RETARGET_OT_propose_annotations(_Op, bpy.types.Operator):
+    """Ask the service for proposed markers and axial curves (exports and uploads the rig first)"""
+    bl_idname = "hand_retarget.propose_annotations"
+    bl_label = "Propose Annotations"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    def execute(self, context):
+        arm, mesh = targets(context)
+        if arm is None or mesh is None:
+            return self.fail("select an armature with a skinned mesh")
+        scene = context.scene.hand_retarget
+        try:
+            export_and_upload(context, arm, mesh)
+            client = jobs.make_client(context)
+            source = None
+            if scene.source_rig_path:
+                source = client.upload("rig", bpy.path.abspath(scene.source_rig_path))["id"]
+            asset = client.propose_annotations(arm.hand_retarget.rig_id, source_rig=source)
+            counts = annotations.load_document(client.asset_content(asset["id"], kind="annotations"), arm, mesh)
+        except (annotations.AnnotationError, rig_export.RigExportError) + ERRORS as err:
+            return self.fail(err)
+        mesh.hand_retarget.annotations_id = asset["id"]
+        self.report({'INFO'}, f"proposed {counts['markers']} markers and {counts['curves']} curves")
+        return {'FINISHED'}
+
+
+class HAND_RETARGET_OT_load_annotations(_Op, bpy.types.Operator, ImportHelper):
+    """Load an annotation file (markers become vertex groups, curves fill the list)"""
+    bl_idname = "hand_retarget.load_annotations"
+    bl_label = "Load Annotations"
+    bl_options = {'REGISTER', 'UNDO'}
+    filename_ext = ".json"
+    filter_glob: StringProperty(default="*.json", options={'HIDDEN'})
+
+    def execute(self, context):
+        arm, mesh = targets(context)
+        if mesh is None:
+            return self.fail("select an armature with a skinned mesh")
+        try:
+            with open(self.filepath, "rb") as fh:
+                counts = annotations.load_document(fh.read(), arm, mesh)
+        except (OSError, annotations.AnnotationError) as err:
+            return self.fail(err)
+        self.report({'INFO'}, f"loaded {counts['markers']} markers and {counts['curves']} curves")
+        return {'FINISHED'}
+
+
+class HAND_RETARGET_OT_save_annotations(_Op, bpy.types.Operator, ExportHelper):
+    """Save the annotations (the core's JSON format)"""
+    bl_idname = "hand_retarget.save_annotations"
+    bl_label = "Save Annotations"
+    filename_ext = ".json"
+    filter_glob: StringProperty(default="*.json", options={'HIDDEN'})
+
+    def execute(self, context):
+        arm, mesh = targets(context)
+        if mesh is None:
+            return self.fail("select an armature with a skinned mesh")
+        try:
+            doc, warnings = annotations.build_document(arm, mesh)
+            with open(self.filepath, "w", encoding="utf-8") as fh:
+                json.dump(doc, fh, indent=1)
+        except (OSError, annotations.AnnotationError) as err:
+            return self.fail(err)
+        for w in warnings:
+            self.report({'WARNING'}, w)
+        self.report({'INFO'}, f"saved {len(doc['markers'])} markers and {len(doc['axial_curves'])} curves")
+        return {'FINISHED'}
+
+
+class HAND_RETARGET_OT_curve_add(_Op, bpy.types.Operator):
+    """Add an axial curve (name it like a source curve)"""
+    bl_idname = "hand_retarget.curve_add"
+    bl_label = "Add Curve"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    def execute(self, context):
+        _, mesh = targets(context)
+        if mesh is None:
+            return self.fail("select an armature with a skinned mesh")
+        s = mesh.hand_retarget
+        item = s.curves.add()
+        item.name = f"curve{len(s.curves)}"
+        s.curve_index = len(s.curves) - 1
+        return {'FINISHED'}
+
+
+class HAND_RETARGET_OT_curve_remove(_Op, bpy.types.Operator):
+    """Remove the selected axial curve"""
+    bl_idname = "hand_retarget.curve_remove"
+    bl_label = "Remove Curve"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    def execute(self, context):
+        _, mesh = targets(context)
+        if mesh is None or not mesh.hand_retarget.curves:
+            return {'CANCELLED'}
+        s = mesh.hand_retarget
+        s.curves.remove(s.curve_index)
+        s.curve_index = max(0, min(s.curve_index, len(s.curves) - 1))
+        return {'FINISHED'}
+
+
+class HAND_RETARGET_OT_curve_pick(_Op, bpy.types.Operator):
+    """Set the selected curve's start or direction vertex to the selected vertex of the mesh
+    (the lowest id when several are selected)"""
+    bl_idname = "hand_retarget.curve_pick"
+    bl_label = "Pick Vertex"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    which: EnumProperty(items=[('START', "Start", ""), ('DIRECTION', "Direction", "")])
+
+    def execute(self, context):
+        _, mesh = targets(context)
+        if mesh is None or not mesh.hand_retarget.curves:
+            return self.fail("add a curve first")
+        if mesh.mode == 'EDIT':
+            mesh.update_from_editmode()
+        v = next((x.index for x in mesh.data.vertices if x.select), None)
+        if v is None:
+            return self.fail("select a vertex of the mesh (Edit Mode)")
+        item = mesh.hand_retarget.curves[mesh.hand_retarget.curve_index]
+        setattr(item, "start_vertex" if self.which == 'START' else "direction_vertex", v)
+        return {'FINISHED'}
+
+
+# ---- jobs -----------------------------------------------------------------------------------------
+def _after_job(scene, job):
+    """on_done of the poller: import at once when asked to."""
+    s = scene.hand_retarget
+    if job["state"] == "succeeded" and s.auto_import:
+        arm = bpy.data.objects.get(s.job_armature)
+        if arm is not None:
+            try:
+                import_result(bpy.context, arm, job["id"], scene=scene)
+            except Exception as err:  # a timer must not raise
+                s.job_message = f"import failed: {err}"
+
+
+class HAND_RETARGET_OT_submit(_Op, bpy.types.Operator):
+    """Upload the rig, the annotations and the clip, and start a retargeting job"""
+    bl_idname = "hand_retarget.submit"
+    bl_label = "Retarget"
+
+    def execute(self, context):
+        arm, mesh = targets(context)
+        if arm is None or mesh is None:
+            return self.fail("select an armature with a skinned mesh")
+        s = context.scene.hand_retarget
+        if jobs.is_polling():
+            return self.fail(f"job {jobs.STATE['job_id']} is still being followed; cancel it first")
+        try:
+            doc, warnings = annotations.build_document(arm, mesh)
+            overrides = json.loads(s.overrides) if s.overrides.strip() else {}
+            if not isinstance(overrides, dict):
+                raise ValueError("overrides must be a JSON object")
+            export_and_upload(context, arm, mesh)
+            client = jobs.make_client(context)
+            ann = client.upload_bytes("annotations", json.dumps(doc).encode("utf-8"), f"{arm.name}.json")
+            mesh.hand_retarget.annotations_id = ann["id"]
+            clip = self.upload_clip(client, s)
+            source = client.upload("rig", bpy.path.abspath(s.source_rig_path))["id"] if s.source_rig_path else None
+            job = client.submit(clip=clip, rig=arm.hand_retarget.rig_id, annotations=ann["id"], source_rig=source,
+                                preset=s.preset, overrides=overrides, evaluate=s.evaluate,
+                                idempotency_key=uuid.uuid4().hex)
+        except (annotations.AnnotationError, rig_export.RigExportError) + ERRORS as err:
+            return self.fail(err)
+        for w in warnings:
+            self.report({'WARNING'}, w)
+        s.job_armature = arm.name
+        jobs.apply_job(s, job)
+        jobs.start_polling(client, job["id"], context.scene, on_done=_after_job)
+        self.report({'INFO'}, f"job {job['id'][:12]} {job['state']}")
+        return {'FINISHED'}
+
+    @staticmethod
+    def upload_clip(client, s) -> str:
+        if s.clip_kind == 'NATIVE':
+            if not s.clip_path:
+                raise ValueError("choose a clip file")
+            return client.upload("clip", bpy.path.abspath(s.clip_path))["id"]
+        paths = {k: bpy.path.abspath(getattr(s, f"grab_{k}")) for k in ("sequence", "mano", "object_mesh")}
+        missing = [k for k, p in paths.items() if not p]
+        if missing:
+            raise ValueError(f"GRAB needs the {', '.join(missing)} file(s)")
+        ids = {k: client.upload("file", p)["id"] for k, p in paths.items()}
+        return client.import_grab(ids["sequence"], ids["mano"], ids["object_mesh"])["id"]
+
+
+class HAND_RETARGET_OT_cancel(_Op, bpy.types.Operator):
+    """Cancel the running job"""
+    bl_idname = "hand_retarget.cancel"
+    bl_label = "Cancel Job"
+
+    def execute(self, context):
+        s = context.scene.hand_retarget
+        if not s.job_id:
+            return self.fail("no job")
+        try:
+            job = jobs.make_client(context).cancel(s.job_id)
+        except ERRORS as err:
+            return self.fail(err)
+        jobs.apply_job(s, job)
+        self.report({'INFO'}, f"job {s.job_id[:12]}: {job['state']}")
+        return {'FINISHED'}
+
+
+def import_result(context, arm, job_id: str, *, scene=None, baked=None, with_object=None, start_frame=None) -> dict:
+    """Fetch a succeeded job's result and put it on ``arm`` (and the object beside it)."""
+    scene = scene or context.scene
+    s = scene.hand_retarget
+    baked = s.baked if baked is None else baked
+    with_object = s.import_object if with_object is None else with_object
+    start_frame = s.start_frame if start_frame is None else start_frame
+    client = jobs.make_client(context)
+    doc = json.loads(client.artifact(job_id, "result.json"))
+    mpu = arm.hand_retarget.meters_per_unit
+    if not arm.hand_retarget.rig_file:  # never exported here: the same rule as the export
+        mpu = rig_export.meters_per_unit(context, arm)
+    info = anim_import.import_curves(context, arm, doc, mpu=mpu, start_frame=start_frame, baked=baked,
+                                     action_name=f"HR_{arm.name}_{job_id[:8]}", scene=scene)
+    if with_object:
+        folder = work_folder(job_id)
+        for name in ("rig.usda", "animation.usda"):  # the layer sublayers rig.usda beside it
+            client.download(job_id, name, os.path.join(folder, name))
+        obj = anim_import.import_object(context, arm, os.path.join(folder, "animation.usda"), mpu=mpu,
+                                        start_frame=start_frame, name=f"HR_Object_{job_id[:8]}", scene=scene)
+        info["object"] = obj.name if obj is not None else None
+    return info
+
+
+class HAND_RETARGET_OT_import_result(_Op, bpy.types.Operator):
+    """Put the job's curves on the armature as F-curves (and import the animated object)"""
+    bl_idname = "hand_retarget.import_result"
+    bl_label = "Import Result"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    job_id: StringProperty(default="", options={'SKIP_SAVE'}, description="Job (empty: the scene's last job)")
+
+    def execute(self, context):
+        s = context.scene.hand_retarget
+        job_id = self.job_id or s.job_id
+        arm, _ = targets(context)
+        arm = arm or bpy.data.objects.get(s.job_armature)
+        if not job_id or arm is None:
+            return self.fail("needs a finished job and an armature")
+        try:
+            info = import_result(context, arm, job_id)
+        except (anim_import.ImportError_, rig_export.RigExportError) + ERRORS as err:
+            return self.fail(err)
+        if info["skipped"]:
+            self.report({'WARNING'}, f"DOFs without a bone: {', '.join(info['skipped'][:8])}")
+        self.report({'INFO'}, f"{info['fcurves']} F-curves, {info['frames']} frames at {info['fps']:g} fps")
+        return {'FINISHED'}
+
+
+CLASSES = (HAND_RETARGET_OT_ping, HAND_RETARGET_OT_add_root_bone, HAND_RETARGET_OT_export_rig,
+           HAND_RETARGET_OT_propose_annotations, HAND_RETARGET_OT_load_annotations,
+           HAND_RETARGET_OT_save_annotations, HAND_RETARGET_OT_curve_add, HAND_RETARGET_OT_curve_remove,
+           HAND_RETARGET_OT_curve_pick, HAND_RETARGET_OT_submit, HAND_RETARGET_OT_cancel,
+           HAND_RETARGET_OT_import_result)

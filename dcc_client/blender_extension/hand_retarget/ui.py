@@ -1,0 +1,128 @@
+"""The sidebar panel (View3D > Sidebar > Hand Retarget), the curve list and the status bar."""
+
+import bpy
+
+from .ops import targets
+
+ACTIVE_STATES = ("queued", "running")
+
+
+class HAND_RETARGET_UL_curves(bpy.types.UIList):
+    def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index):
+        row = layout.row(align=True)
+        row.prop(item, "name", text="", emboss=False)
+        row.prop(item, "discard", text="", icon='TRASH' if item.discard else 'CHECKMARK', emboss=False)
+        if not item.discard:
+            row.label(text=f"{item.start_vertex}→{item.direction_vertex}")
+            row.label(text=f"λa {item.lambda_a:.2f} λs {item.lambda_s:.2f}")
+
+
+class HAND_RETARGET_PT_panel(bpy.types.Panel):
+    bl_label = "Hand Retarget"
+    bl_space_type = 'VIEW_3D'
+    bl_region_type = 'UI'
+    bl_category = "Hand Retarget"
+
+    def draw(self, context):
+        layout = self.layout
+        s = context.scene.hand_retarget
+        arm, mesh = targets(context)
+
+        box = layout.box()
+        box.label(text="Rig", icon='ARMATURE_DATA')
+        if arm is None:
+            box.label(text="Select a hand armature")
+        else:
+            box.label(text=f"{arm.name} / {mesh.name if mesh else 'no skinned mesh'}")
+            row = box.row(align=True)
+            row.operator("hand_retarget.export_rig", icon='EXPORT')
+            row.operator("hand_retarget.add_root_bone", text="", icon='BONE_DATA')
+            if arm.hand_retarget.rig_id:
+                box.label(text=f"uploaded {arm.hand_retarget.rig_id[:12]}")
+
+        box = layout.box()
+        box.label(text="Annotations", icon='GROUP_VERTEX')
+        box.operator("hand_retarget.propose_annotations", icon='LIGHT')
+        row = box.row(align=True)
+        row.operator("hand_retarget.load_annotations", icon='FILE_FOLDER')
+        row.operator("hand_retarget.save_annotations", icon='FILE_TICK')
+        if mesh is not None:
+            ms = mesh.hand_retarget
+            box.label(text="Markers: vertex groups named like the marker")
+            row = box.row()
+            row.template_list("HAND_RETARGET_UL_curves", "", ms, "curves", ms, "curve_index", rows=4)
+            col = row.column(align=True)
+            col.operator("hand_retarget.curve_add", text="", icon='ADD')
+            col.operator("hand_retarget.curve_remove", text="", icon='REMOVE')
+            if ms.curves and 0 <= ms.curve_index < len(ms.curves):
+                item = ms.curves[ms.curve_index]
+                col = box.column(align=True)
+                r = col.row(align=True)
+                r.prop(item, "start_vertex")
+                r.operator("hand_retarget.curve_pick", text="", icon='EYEDROPPER').which = 'START'
+                r = col.row(align=True)
+                r.prop(item, "direction_vertex")
+                r.operator("hand_retarget.curve_pick", text="", icon='EYEDROPPER').which = 'DIRECTION'
+                r = col.row(align=True)
+                r.prop(item, "lambda_a")
+                r.prop(item, "lambda_s")
+            box.prop(s, "show_annotations")
+
+        box = layout.box()
+        box.label(text="Clip", icon='SEQUENCE')
+        box.prop(s, "clip_kind", expand=True)
+        if s.clip_kind == 'NATIVE':
+            box.prop(s, "clip_path")
+        else:
+            box.prop(s, "grab_sequence")
+            box.prop(s, "grab_mano")
+            box.prop(s, "grab_object_mesh")
+        box.prop(s, "source_rig_path")
+        row = box.row()
+        row.prop(s, "preset")
+        row.prop(s, "evaluate")
+        box.prop(s, "overrides")
+        row = box.row(align=True)
+        row.operator("hand_retarget.submit", icon='PLAY')
+        row.operator("hand_retarget.cancel", text="", icon='CANCEL')
+        box.prop(s, "auto_import")
+
+        if s.job_id:
+            box = layout.box()
+            box.label(text=f"Job {s.job_id[:12]}", icon='TIME')
+            if s.job_state in ACTIVE_STATES and hasattr(box, "progress"):
+                box.progress(factor=s.job_progress, type='BAR', text=s.job_message)
+            else:
+                box.label(text=s.job_message or s.job_state)
+            row = box.row()
+            row.prop(s, "baked")
+            row.prop(s, "import_object")
+            box.prop(s, "start_frame")
+            box.operator("hand_retarget.import_result", icon='IMPORT')
+
+
+def draw_status(self, context):
+    """Status-bar entry while a job runs."""
+    s = getattr(context.scene, "hand_retarget", None)
+    if s is None or s.job_state not in ACTIVE_STATES:
+        return
+    text = f"Hand Retarget: {s.job_stage or s.job_state}"
+    if hasattr(self.layout, "progress"):
+        self.layout.progress(factor=s.job_progress, type='RING', text=text)
+    else:
+        self.layout.label(text=f"{text} {100 * s.job_progress:.0f}%")
+
+
+CLASSES = (HAND_RETARGET_UL_curves, HAND_RETARGET_PT_panel)
+
+
+def register():
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+    bpy.types.STATUSBAR_HT_header.append(draw_status)
+
+
+def unregister():
+    bpy.types.STATUSBAR_HT_header.remove(draw_status)
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)

@@ -1,0 +1,89 @@
+"""The core's side of the Blender tests, run with the service's Python (/work/main/.venv): the
+bpy environment pins numpy < 2 and cannot import retarget_core, so files pass between the two.
+
+    python core_side.py inputs OUT_DIR            demo rig USD + its DOF spec, a short demo clip
+    python core_side.py rig RIG.usda POSE.json OUT.npy
+                                                  read the rig, skin it at the DOF values in
+                                                  POSE.json ({name: value}), print a summary
+    python core_side.py grab OUT_DIR              synthetic GRAB sequence + MANO model + object mesh
+    python core_side.py annotations FILE RIG.usda check an annotation file against the rig and
+                                                  the demo source hand
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+RESOLUTION = 0.006        # target hand: coarse keeps Blender and the solver fast
+SOURCE_RESOLUTION = 0.004  # the demo source hand the clip and the proposer use
+
+
+def inputs(out: Path) -> None:
+    from retarget_core.clip.demo import make_demo_clip, source_rig
+    from retarget_core.rig.demo_hands import demo_hand
+    from retarget_core.rig.io import save_rig
+
+    out.mkdir(parents=True, exist_ok=True)
+    rig = demo_hand("human_alt", RESOLUTION)
+    save_rig(rig, out / "demo_rig.usda")
+    spec = [{"name": d.name, "joint": rig.joints[d.joint].name, "kind": d.kind, "axis": d.axis.tolist(),
+             "lower": d.lower, "upper": d.upper} for d in rig.dofs]
+    (out / "demo_spec.json").write_text(json.dumps(spec))
+    clip = make_demo_clip("bottle_pick_place", time_scale=0.05, resolution=SOURCE_RESOLUTION,
+                          rig=source_rig(SOURCE_RESOLUTION))
+    clip.save(out / "clip.npz")
+    print(json.dumps({"frames": int(clip.n_frames), "fps": float(clip.fps)}))
+
+
+def grab(out: Path) -> None:
+    """Synthetic GRAB files (the service tests' generator): sequence, MANO model, object mesh."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests"))
+    from grab_fixtures import make_grab_sequence, make_mano_raw, write_grab_npz, write_mano_official
+
+    raw = make_mano_raw(0, rigid=False)
+    seq = make_grab_sequence(out, raw)
+    mano = write_mano_official(out / "MANO_RIGHT.pkl", raw)
+    sequence = write_grab_npz(out / "grab" / "s1" / "apple_eat_1.npz", seq)
+    print(json.dumps({"sequence": str(sequence), "mano": str(mano),
+                      "object_mesh": str(out / "tools/object_meshes/contact_meshes/apple.ply")}))
+
+
+def rig(path: str, pose_json: str, out_npy: str) -> None:
+    from retarget_core.rig.usd_io import read_rig_usd
+
+    r = read_rig_usd(path)
+    values = json.loads(Path(pose_json).read_text())
+    q = r.rest_pose.copy()
+    for i, name in enumerate(r.dof_names):
+        if name in values:
+            q[i] = values[name]
+    kin = r.kinematics()
+    np.save(out_npy, np.stack([kin.skin(r.rest_pose), kin.skin(q)]))
+    print(json.dumps({
+        "name": r.name, "joints": r.joint_names, "dofs": r.dof_names, "kinds": [d.kind for d in r.dofs],
+        "axes": [d.axis.tolist() for d in r.dofs], "lower": r.lower.tolist(), "upper": r.upper.tolist(),
+        "rest": r.rest_pose.tolist(), "vertices": int(r.surface.n_vertices), "faces": r.surface.faces.tolist(),
+        "world_at_pose": kin.pose(q).world.tolist(),
+    }))
+
+
+def annotations(path: str, rig_path: str) -> None:
+    from retarget_core.clip.demo import source_rig
+    from retarget_core.rig.usd_io import read_rig_usd
+    from retarget_core.transfer.annotations import load_annotations
+
+    a = load_annotations(path)  # schema and semantic checks
+    target, source = read_rig_usd(rig_path), source_rig(SOURCE_RESOLUTION)
+    a.check_meshes(source.surface.faces, source.surface.n_vertices, target.surface.faces, target.surface.n_vertices,
+                   source=path)
+    print(json.dumps({"markers": len(a.markers), "curves": len(a.curves)}))
+
+
+if __name__ == "__main__":
+    cmd, args = sys.argv[1], sys.argv[2:]
+    {"inputs": lambda: inputs(Path(args[0])), "grab": lambda: grab(Path(args[0])), "rig": lambda: rig(*args),
+     "annotations": lambda: annotations(*args)}[cmd]()
