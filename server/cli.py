@@ -17,6 +17,8 @@ def add_commands(sub) -> None:
     serve.add_argument("--dask-scheduler", default="", help="tcp://HOST:PORT: solve frames on this Dask cluster")
     serve.add_argument("--max-upload-mb", type=float, default=256)
     serve.add_argument("--max-active-jobs", type=int, default=32, help="queued + running jobs per owner")
+    serve.add_argument("--atlas-cache-mb", type=float, default=4096,
+                       help="disk kept for built contact atlases (least recently used removed)")
     serve.set_defaults(func=_cmd_serve)
 
     token = sub.add_parser("token", help="API tokens of the job service")
@@ -39,7 +41,7 @@ def _cmd_serve(args) -> int:
     configure_logging()
     settings = Settings(data_dir=Path(args.data_dir), job_slots=args.job_slots, frame_workers=args.workers,
                         dask_scheduler=args.dask_scheduler, max_upload_bytes=int(args.max_upload_mb * MIB),
-                        max_active_jobs=args.max_active_jobs)
+                        max_active_jobs=args.max_active_jobs, atlas_cache_bytes=int(args.atlas_cache_mb * MIB))
     uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="warning", access_log=False)
     return 0
 

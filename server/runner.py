@@ -119,11 +119,19 @@ class JobRunner:
             self.children.pop(job_id)
             if job is not None and job["state"] == "running":  # died without a final state
                 self._requeue_or_fail(job, f"the job process exited with code {proc.returncode}")
+            self._prune_cache()
         while len(self.children) < self.settings.job_slots and not self._stop.is_set():
             job = self.store.claim_next_job()
             if job is None:
                 break
             self._spawn(job)
+
+    def _prune_cache(self) -> None:
+        from retarget_core.transfer.atlas import prune_atlas_cache
+
+        removed, freed = prune_atlas_cache(self.store.paths.atlas_cache, self.settings.atlas_cache_bytes)
+        if removed:
+            log.info("atlas cache: removed %d files (%.0f MB)", removed, freed / 1e6)
 
     def _spawn(self, job: dict) -> None:
         s = self.settings

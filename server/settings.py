@@ -15,7 +15,8 @@ class Settings:
     ``dask_scheduler``, where frame chunks run on the cluster's workers). Limits per owner:
     ``max_upload_bytes`` (413 beyond), ``max_active_jobs`` queued or running (429 beyond).
     ``max_attempts``: a job whose process dies (or whose service is killed) is re-run at most
-    this many times in all."""
+    this many times in all. ``atlas_cache_bytes``: the built contact atlases kept under
+    DATA/cache/atlas (least recently used removed after each job)."""
 
     data_dir: Path
     job_slots: int = 1
@@ -25,3 +26,4 @@ class Settings:
     max_active_jobs: int = 32
     max_attempts: int = 3
     evaluate_stride: int = 4
+    atlas_cache_bytes: int = 4096 * MIB

@@ -210,3 +210,37 @@ def test_config_key():
         load_config(None, "default", {"atlas_cache": 3})
     with pytest.raises(InputError, match="atlas_cache"):
         load_config(None, "default", {"atlas_cache": "a\0b"})
+
+
+def test_prune_keeps_the_most_recently_used_files_within_the_budget(tmp_path):
+    import os
+    import time
+
+    from retarget_core.transfer.atlas import prune_atlas_cache
+
+    now = time.time()
+    sizes = {"a": 400, "b": 300, "c": 200, "d": 100}  # a oldest ... d newest
+    for age, (name, size) in enumerate(sizes.items()):
+        path = tmp_path / f"{name}.npz"
+        path.write_bytes(b"x" * size)
+        os.utime(path, (now - 100 * (4 - age), now - 100 * (4 - age)))
+    old_tmp = tmp_path / ".e.npz.tmp"
+    old_tmp.write_bytes(b"x" * 50)
+    os.utime(old_tmp, (now - 7200, now - 7200))
+    fresh_tmp = tmp_path / ".f.npz.tmp"  # a save in progress: kept
+    fresh_tmp.write_bytes(b"x" * 50)
+    (tmp_path / "notes.txt").write_text("not an atlas")
+    assert prune_atlas_cache(tmp_path, 350) == (3, 750)  # a and b go, then c+d = 300 fit
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".f.npz.tmp", "c.npz", "d.npz", "notes.txt"]
+    assert prune_atlas_cache(tmp_path, 350) == (0, 0)
+    assert prune_atlas_cache(tmp_path / "missing", 0) == (0, 0)
+
+
+def test_loading_a_cached_atlas_marks_it_recently_used(hands, built, no_build):
+    import os
+
+    source, target, annotations = hands
+    path = built[2]
+    os.utime(path, (1_000_000, 1_000_000))
+    get_atlas(*surfaces(source, target), annotations, cache_dir=path.parent)  # loaded, not rebuilt
+    assert path.stat().st_mtime > 1_000_000 + 3600

@@ -21,9 +21,12 @@ Files are written atomically; an unreadable, foreign or stale file is rebuilt an
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
+import os
+import time
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -452,7 +455,10 @@ def _load_cached(path: Path, key: str, source: SurfaceGeometry, target: SurfaceG
             arrays = {name: data[name] for name in data.files}
         if int(arrays["cache_version"]) != ATLAS_CACHE_VERSION or str(arrays["cache_key"]) != key:
             raise ValueError("another cache version or key")
-        return Atlas.from_arrays(source, target, annotations, arrays, reconstruction=reconstruction)
+        atlas = Atlas.from_arrays(source, target, annotations, arrays, reconstruction=reconstruction)
+        with contextlib.suppress(OSError):  # its modification time is its last use (prune_atlas_cache)
+            os.utime(path)
+        return atlas
     except InputError:
         raise  # the annotations do not fit the surfaces: the build would say the same
     except Exception as err:  # any unreadable file is rebuilt (and replaced) instead
@@ -472,6 +478,43 @@ def _save_cached(path: Path, key: str, atlas: Atlas) -> None:
                 np.savez(handle, **arrays)
     except (OSError, ValueError) as err:
         log.warning("cannot write atlas cache file %s: %s", path, err)
+
+
+def prune_atlas_cache(cache_dir, max_bytes: int, *, stale_tmp_seconds: float = 3600.0) -> tuple[int, int]:
+    """Keep ``cache_dir``'s atlas files within ``max_bytes`` by removing the least recently used
+    (a file's modification time is its last save or load), and remove temporary files left by
+    a process killed mid-save (older than ``stale_tmp_seconds``). Returns (files removed,
+    bytes freed). A missing folder is empty; files vanishing meanwhile are skipped."""
+    folder = Path(cache_dir)
+    if not folder.is_dir():
+        return 0, 0
+    now, removed, freed = time.time(), 0, 0
+    entries = []
+    for path in folder.iterdir():
+        try:
+            st = path.stat()
+        except OSError:
+            continue
+        if path.name.endswith(".npz.tmp"):
+            if now - st.st_mtime > stale_tmp_seconds and _unlink(path):
+                removed, freed = removed + 1, freed + st.st_size
+        elif path.suffix == ".npz":
+            entries.append((st.st_mtime, st.st_size, path))
+    total = sum(size for _, size, _ in entries)
+    for _, size, path in sorted(entries, key=lambda e: e[0]):
+        if total <= max_bytes:
+            break
+        if _unlink(path):
+            total, removed, freed = total - size, removed + 1, freed + size
+    return removed, freed
+
+
+def _unlink(path: Path) -> bool:
+    try:
+        path.unlink()
+        return True
+    except OSError:
+        return False
 
 
 # ---- per-landmark charts, optionally in worker processes ----------------------------------------

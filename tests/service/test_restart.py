@@ -43,3 +43,22 @@ def test_kill9_mid_job_then_restart_finishes_it(tmp_path_factory, inputs):
         assert not list((data / "tmp").glob("*.out"))  # the killed attempt's scratch output was removed
     finally:
         svc.stop()
+
+
+def test_atlas_cache_is_pruned_to_its_budget(tmp_path_factory, inputs):
+    """A job's atlas lands in DATA/cache/atlas; with a budget smaller than one atlas the runner
+    removes it once the job has finished (and the job's result is unaffected)."""
+    data = tmp_path_factory.mktemp("prune") / "data"
+    svc = Service(data, "--atlas-cache-mb", "1").start()
+    try:
+        c = svc.client("judy")
+        ids = upload_inputs(c, inputs)
+        job = c.wait(c.submit(**ids, overrides=FAST, evaluate=False)["id"], timeout=300)
+        assert job["state"] == "succeeded", job["error"]
+        deadline = time.monotonic() + 10
+        while list((data / "cache" / "atlas").glob("*.npz")):
+            assert time.monotonic() < deadline, "the atlas cache was not pruned"
+            time.sleep(0.1)
+        assert "atlas cache: removed 1 files" in svc.log.read_text()  # it was there, and went
+    finally:
+        svc.stop()
