@@ -273,7 +273,8 @@ def retarget(clip: Clip, source_rig: Rig, target_rig: Rig, annotations: Annotati
         usable = int((~trajectory.unresolved).sum(axis=0).min())
         n_control = max(MIN_CONTROL_POINTS, min(n_control, usable))
         curves = fit_trajectory(times, trajectory.q, n_control, mask=~trajectory.unresolved,
-                                optimize_knots=config.fit.optimize_knots)
+                                optimize_knots=config.fit.optimize_knots,
+                                limits=(target_rig.lower, target_rig.upper) if config.fit.respect_limits else None)
         timings["fit"] = time.perf_counter() - t0
         report("spline fit", 1, 1)
 

@@ -341,3 +341,38 @@ def test_json_round_trip(tmp_path, rig):
     assert doc["extra"] == {"fps": FPS, "rig": rig.name}
     with pytest.raises(InputError):
         write_animation_json(path, rig.dof_names[:-1], t, q, {})
+
+
+def test_bounded_fit_keeps_the_curve_within_the_limits():
+    """Samples that press against a limit (a clamped sine): the unconstrained fit overshoots it
+    between and at the frames; with bounds the curve stays inside everywhere and still follows
+    the data; a curve already inside is left exactly as it was."""
+    t = np.linspace(0.0, 2.0, 121)
+    y = np.minimum(np.sin(3.0 * t), 0.8)  # flat at the upper limit, with corners
+    free = fit_bspline(t, y, 14, optimize_knots=False)
+    dense = np.linspace(0.0, 2.0, 4001)
+    assert free(dense).max() > 0.8 + 1e-3  # the overshoot being fixed
+    bounded = fit_bspline(t, y, 14, optimize_knots=False, bounds=(-2.0, 0.8))
+    assert bounded(dense).max() <= 0.8 + 1e-12 and bounded(dense).min() >= -2.0
+    np.testing.assert_array_equal(bounded.knots, free.knots)
+    assert np.sqrt(np.mean((bounded(t) - y) ** 2)) < 0.02
+    # the bounded least squares is optimal: no feasible perturbation of a coefficient lowers the residual
+    base = np.sum((bounded(t) - y) ** 2)
+    for k in range(bounded.n_control):
+        for step in (-1e-3, 1e-3):
+            c = bounded.coeffs.copy()
+            c[k] = np.clip(c[k] + step, -2.0, 0.8)
+            trial = type(bounded)(knots=bounded.knots, coeffs=c, degree=3)
+            assert np.sum((trial(t) - y) ** 2) >= base - 1e-12
+    inside = fit_bspline(t, 0.5 * np.sin(3.0 * t), 14, optimize_knots=False, bounds=(-2.0, 0.8))
+    np.testing.assert_array_equal(inside.coeffs, fit_bspline(t, 0.5 * np.sin(3.0 * t), 14, optimize_knots=False).coeffs)
+    with pytest.raises(InputError, match="lower <= upper"):
+        fit_bspline(t, y, 14, bounds=(1.0, 0.0))
+
+
+def test_fit_trajectory_limits_per_dof():
+    t = np.linspace(0.0, 1.0, 61)
+    q = np.stack([np.minimum(np.sin(6 * t), 0.7), np.maximum(np.cos(6 * t), -0.3)], axis=1)
+    curves = fit_trajectory(t, q, 10, optimize_knots=False, limits=(np.array([-1.0, -0.3]), np.array([0.7, 1.0])))
+    dense = np.linspace(0, 1, 2001)
+    assert curves[0](dense).max() <= 0.7 + 1e-12 and curves[1](dense).min() >= -0.3 - 1e-12

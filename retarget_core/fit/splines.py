@@ -275,6 +275,7 @@ def fit_bspline(
     min_gap: float | None = None,
     max_iter: int = 40,
     extrapolation: str = "held",
+    bounds: tuple[float, float] | None = None,
 ) -> BSplineCurve:
     """Least-squares clamped cubic B-spline with ``n_control`` control points.
 
@@ -284,6 +285,11 @@ def fit_bspline(
     the residual (bounded L-BFGS-B over a sorted parametrisation with a minimum knot gap
     ``min_gap``, default a tenth of the uniform spacing; only knots meeting the
     Schoenberg-Whitney condition are accepted); the result is never worse than the uniform fit.
+
+    ``bounds = (lower, upper)``: when the fitted curve leaves them (checked at the frames and
+    four points per knot interval), the coefficients are re-fitted by bounded least squares
+    within them, on the same knots; a B-spline lies in the convex hull of its coefficients, so
+    the curve then stays within the bounds everywhere. A curve already inside is unchanged.
 
     Raises InputError when fewer frames are usable than control points or a used value is NaN.
     """
@@ -307,9 +313,29 @@ def fit_bspline(
     n_interior = n_control - degree - 1
     if optimize_knots and n_interior > 0 and best[1] > 0:
         best_knots, best = _optimize_knots(x, y, best_knots, best, start, end, degree, min_gap, max_iter)
-    spline = best[0]
-    return BSplineCurve(knots=best_knots, coeffs=np.asarray(spline.c, dtype=np.float64), degree=degree,
-                        extrapolation=extrapolation)
+    coeffs = np.asarray(best[0].c, dtype=np.float64)
+    if bounds is not None:
+        coeffs = _bounded(x, y, best_knots, coeffs, degree, times, bounds)
+    return BSplineCurve(knots=best_knots, coeffs=coeffs, degree=degree, extrapolation=extrapolation)
+
+
+def _bounded(x, y, knots, coeffs, degree, times, bounds) -> np.ndarray:
+    """``coeffs`` refitted within ``bounds`` by bounded least squares when the curve leaves them."""
+    lo, hi = float(bounds[0]), float(bounds[1])
+    if not lo <= hi:
+        raise InputError(f"bounds must satisfy lower <= upper, got ({lo}, {hi})", element="bounds")
+    if coeffs.min() >= lo and coeffs.max() <= hi:
+        return coeffs  # convex hull: the curve is inside
+    breaks = np.unique(knots)
+    probe = np.concatenate([times, (breaks[:-1, None] + np.diff(breaks)[:, None] * np.linspace(0, 1, 5)).ravel()])
+    values = BSpline(knots, coeffs, degree)(probe)
+    if values.min() >= lo and values.max() <= hi:
+        return coeffs
+    from scipy.optimize import lsq_linear
+
+    design = BSpline.design_matrix(x, knots, degree).toarray()
+    fit = lsq_linear(design, y, bounds=(lo, hi), method="bvls")
+    return np.clip(fit.x, lo, hi)
 
 
 def _optimize_knots(x, y, knots, best, start, end, degree, min_gap, max_iter):
@@ -357,11 +383,13 @@ def _optimize_knots(x, y, knots, best, start, end, degree, min_gap, max_iter):
     return state["knots"], state["fit"]
 
 
-def fit_trajectory(times, q, n_control: int, mask=None, optimize_knots: bool = True, **kwargs) -> list[BSplineCurve]:
+def fit_trajectory(times, q, n_control: int, mask=None, optimize_knots: bool = True, limits=None,
+                   **kwargs) -> list[BSplineCurve]:
     """One cubic B-spline per DOF, the same control-point count for every DOF.
 
     times: (F,) seconds; q: (F, D) DOF values; mask: (F, D) bool frames to use per DOF, or
-    None. Extra keyword arguments go to :func:`fit_bspline`."""
+    None; limits: None or (lower (D,), upper (D,)): each curve kept within its DOF's limits
+    (``bounds`` of :func:`fit_bspline`). Extra keyword arguments go to :func:`fit_bspline`."""
     q = np.asarray(q, dtype=np.float64)
     times = np.asarray(times, dtype=np.float64)
     if q.ndim != 2 or q.shape[0] != times.shape[0]:
@@ -375,7 +403,8 @@ def fit_trajectory(times, q, n_control: int, mask=None, optimize_knots: bool = T
         try:
             curves.append(
                 fit_bspline(times, q[:, d], n_control, mask=None if mask is None else mask[:, d],
-                            optimize_knots=optimize_knots, **kwargs)
+                            optimize_knots=optimize_knots,
+                            bounds=None if limits is None else (limits[0][d], limits[1][d]), **kwargs)
             )
         except InputError as exc:
             raise InputError(str(exc), element=f"DOF {d}") from exc

@@ -242,11 +242,15 @@ class Fit:
     control points for every DOF. Give exactly one of ``control_points`` (a fixed count) or
     ``control_points_per_second`` (scaled with the clip's duration). ``optimize_knots = False``
     uses clamped uniform knots (the paper's code); ``True`` also solves for knot locations
-    (the paper's text)."""
+    (the paper's text). ``respect_limits`` (default preset; off in ``paper``): a curve that
+    would leave its DOF's limits between or at the frames is re-fitted with its coefficients
+    bounded by the limits, so it stays within them (a robot can play it back); the
+    unconstrained least-squares fit overshot the limits on fast clips."""
 
     control_points: int | None = None
     control_points_per_second: float | None = 10.0
     optimize_knots: bool = False
+    respect_limits: bool = True
 
     def n_control_points(self, n_frames: int, fps: float) -> int:
         """Control points for a clip of ``n_frames`` at ``fps``: the fixed count, or
@@ -466,7 +470,7 @@ def _paper() -> RetargetConfig:
         solver=SolverSettings(algorithm="LD_MMA", maxeval=100, root_maxeval=100,
                               xtol_rel=1e-4, ftol_rel=0.0, gradient="analytic", fd_step=1e-3),
         refinement=Refinement(e_acc_angular=500.0, e_acc_linear=500.0, max_iterations=20),
-        fit=Fit(control_points=None, control_points_per_second=10.0, optimize_knots=False),
+        fit=Fit(control_points=None, control_points_per_second=10.0, optimize_knots=False, respect_limits=False),
         passes=Passes(),
         contacts=Contacts(keep_source_gap=False),
         markers=Markers(distance="squared"),
@@ -485,6 +489,7 @@ def _default() -> RetargetConfig:
     cfg.refinement.resolve_tolerance_angular = 0.5  # re-solve only frames the filter really moved
     cfg.refinement.resolve_tolerance_linear = 0.05
     cfg.sampling.table_sample_stride = 3  # a third of the hand's vertices feel the table
+    cfg.fit.respect_limits = True  # curves a rig (or a robot) can play back
     return cfg
 
 
