@@ -42,6 +42,17 @@ def rig_info(rig) -> dict:
             "vertices": int(surface.n_vertices), "faces": int(len(surface.faces))}
 
 
+def clip_info(clip) -> dict:
+    return {"frames": clip.n_frames, "fps": float(clip.fps), "source_rig": clip.source_rig,
+            "object": clip.object_name, "hand_vertices": int(clip.hand_vertices.shape[1]),
+            "hand_faces": int(len(clip.hand_faces)), "motion": clip.motion}
+
+
+def annotations_info(ann) -> dict:
+    return {"source": ann.source.to_dict(), "target": ann.target.to_dict(), "markers": len(ann.markers),
+            "curves": len(ann.curves)}
+
+
 def validate_upload(kind: str, tmp: Path, filename: str, *, scratch: Path, bundle_bytes: int) -> tuple[Path, str, dict]:
     """Check the upload at ``tmp`` (no suffix) as a ``kind`` asset. Returns (path to move to the
     content address, its suffix, info). Raises :class:`UploadError` naming the problem; the
@@ -51,9 +62,7 @@ def validate_upload(kind: str, tmp: Path, filename: str, *, scratch: Path, bundl
         from retarget_core.transfer.annotations import load_annotations
 
         path = tmp.rename(tmp.with_suffix(".json"))
-        ann = _core(load_annotations, path)
-        return path, ".json", {"source": ann.source.to_dict(), "target": ann.target.to_dict(),
-                               "markers": len(ann.markers), "curves": len(ann.curves)}
+        return path, ".json", annotations_info(_core(load_annotations, path))
     if kind == "clip":
         from retarget_core.clip import load_clip
 
@@ -61,10 +70,7 @@ def validate_upload(kind: str, tmp: Path, filename: str, *, scratch: Path, bundl
             raise UploadError("a clip must be a native clip .npz (a zip archive); convert GRAB sequences with "
                               "POST /v1/clips/import-grab")
         path = tmp.rename(tmp.with_suffix(".npz"))
-        clip = _core(load_clip, path)
-        return path, ".npz", {"frames": clip.n_frames, "fps": float(clip.fps), "source_rig": clip.source_rig,
-                              "object": clip.object_name, "hand_vertices": int(clip.hand_vertices.shape[1]),
-                              "hand_faces": int(len(clip.hand_faces)), "motion": clip.motion}
+        return path, ".npz", clip_info(_core(load_clip, path))
     if kind == "file":
         suffix = Path(filename).suffix.lower()
         if suffix not in FILE_SUFFIXES:

@@ -11,7 +11,7 @@ from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, Res
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
-from ..assets import UploadError, import_grab_clip, validate_upload
+from ..assets import UploadError, annotations_info, clip_info, import_grab_clip, validate_upload
 from ..deps import current_owner, get_settings, get_store
 from ..schemas import SHA256, Asset, AssetList, GrabImport, Problem, ProposeRequest
 from ..settings import Settings
@@ -124,8 +124,8 @@ def download_asset(asset_id: str = Path(..., pattern=SHA256), kind: Kind | None 
                         media_type="application/octet-stream")
 
 
-def _save_new_asset(store: Store, owner: str, kind: str, name: str, write) -> tuple[dict, bool]:
-    """Store a file the service made (``write(path)``) as ``owner``'s asset."""
+def _save_new_asset(store: Store, owner: str, kind: str, name: str, write, info: dict) -> tuple[dict, bool]:
+    """Store a file the service made (``write(path)``) as ``owner``'s asset; (asset, created)."""
     tmp = store.new_tmp(".npz" if kind == "clip" else ".json")
     try:
         write(tmp)
@@ -134,7 +134,7 @@ def _save_new_asset(store: Store, owner: str, kind: str, name: str, write) -> tu
         final = store.put_blob(tmp, sha, tmp.suffix)
     finally:
         tmp.unlink(missing_ok=True)
-    return final, sha, len(data)
+    return store.add_asset(owner, sha, kind, name, len(data), final, info)
 
 
 @router.post("/clips/import-grab", response_model=Asset, status_code=201, responses=ERRORS | BAD_BODY)
@@ -153,11 +153,8 @@ def import_grab(body: GrabImport, response: Response, owner: str = Depends(curre
                                    "vtemp": paths["vtemp"]})
     except UploadError as err:
         raise HTTPException(422, f"cannot import the GRAB sequence: {err}") from err
-    final, sha, size = _save_new_asset(store, owner, "clip", body.name, clip.save)
-    info = {"frames": clip.n_frames, "fps": float(clip.fps), "source_rig": clip.source_rig,
-            "object": clip.object_name, "hand_vertices": int(clip.hand_vertices.shape[1]),
-            "hand_faces": int(len(clip.hand_faces)), "motion": clip.motion, "imported_from": "grab"}
-    asset, created = store.add_asset(owner, sha, "clip", body.name, size, final, info)
+    asset, created = _save_new_asset(store, owner, "clip", body.name, clip.save,
+                                     clip_info(clip) | {"imported_from": "grab"})
     response.status_code = 201 if created else 200
     return public(asset)
 
@@ -181,11 +178,8 @@ def propose(body: ProposeRequest, response: Response, owner: str = Depends(curre
     except InputError as err:
         raise HTTPException(422, f"cannot propose annotations: {err}") from err
     name = f"{source.name}_to_{target_asset['info'].get('name', 'target')}.json"
-    final, sha, size = _save_new_asset(store, owner, "annotations", name,
-                                       lambda p: save_annotations(annotations, p))
-    info = {"source": annotations.source.to_dict(), "target": annotations.target.to_dict(),
-            "markers": len(annotations.markers), "curves": len(annotations.curves), "proposed": True}
-    asset, created = store.add_asset(owner, sha, "annotations", name, size, final, info)
+    asset, created = _save_new_asset(store, owner, "annotations", name, lambda p: save_annotations(annotations, p),
+                                     annotations_info(annotations) | {"proposed": True})
     response.status_code = 201 if created else 200
     return public(asset)
 

@@ -261,3 +261,17 @@ def test_readiness_docs_and_metrics(service, alice, finished):
     # one JSON log line per request, with its status and the caller
     lines = [json.loads(line) for line in service.log.read_text().splitlines() if line.startswith("{")]
     assert any(r.get("path") == "/v1/jobs" and r.get("method") == "POST" and r.get("owner") == "alice" for r in lines)
+
+
+def test_proposed_annotations_fit_the_rig(alice, finished):
+    rig = alice.assets("rig")[0]
+    ann = alice.propose_annotations(rig["id"])
+    assert ann["kind"] == "annotations" and ann["info"]["proposed"] is True
+    assert (ann["info"]["target"]["vertices"], ann["info"]["target"]["faces"]) == \
+        (rig["info"]["vertices"], rig["info"]["faces"])
+    assert ann["info"]["markers"] >= 20 and ann["info"]["curves"] >= 5
+    doc = json.loads(alice.asset_content(ann["id"]))
+    assert len(doc["markers"]) == ann["info"]["markers"]
+    with pytest.raises(ServiceError) as err:  # a clip is not a rig
+        alice.propose_annotations(finished["ids"]["clip"])
+    assert err.value.status == 404 and "target_rig" in err.value.detail
