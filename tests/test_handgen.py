@@ -42,6 +42,21 @@ def test_witch_fingers_are_longer_and_thinner_than_the_source(demo_rigs):
     assert finger_extent(demo_rigs["witch"]) > 1.25 * finger_extent(demo_rigs["source_human"])
 
 
+def test_witch_link_lengths_follow_the_papers_lambda_a(demo_rigs):
+    """The paper's witch: lambda_A 1.55 on index to pinky, 1.15 on the thumb (rest link lengths
+    over the source's, from joint 1 to joint 3)."""
+    from retarget_core.rig.demo_hands import WITCH_THUMB_LENGTH_SCALE
+
+    def links(rig, finger):
+        world = rig.kinematics().bind_world
+        p = np.array([world[rig.joint_index(f"{finger}{k}")][:3, 3] for k in (1, 2, 3)])
+        return np.linalg.norm(np.diff(p, axis=0), axis=1)
+
+    for finger, scale in (("thumb", WITCH_THUMB_LENGTH_SCALE), ("index", 1.55), ("middle", 1.55), ("pinky", 1.55)):
+        ratio = links(demo_rigs["witch"], finger) / links(demo_rigs["source_human"], finger)
+        np.testing.assert_allclose(ratio, scale, rtol=1e-6, err_msg=finger)
+
+
 def test_fingertips_follow_the_last_joint_only(demo_rigs):
     rig = demo_rigs["source_human"]
     tip_joint = rig.joint_index("middle3")

@@ -23,14 +23,21 @@ _CMC = JointSpec(("abduct", "flex", "twist"), {"abduct": (-40, 40), "flex": (-30
 _THUMB_MCP = JointSpec(("abduct", "flex", "twist"), {"abduct": (-15, 15), "flex": (-15, 75), "twist": (-20, 20)})
 _THUMB_IP = JointSpec(("abduct", "flex", "twist"), {"abduct": (-10, 10), "flex": (-15, 90), "twist": (-10, 10)})
 
+#: The witch's thumb over the source's, from the paper's table of lambda coefficients (witch:
+#: lambda_A 1.15 on the thumb, 1.55 on the other fingers). Until stop 13 the witch's thumb was
+#: 1.55x like its fingers; see the README's motion synthesis figures for what that changes.
+WITCH_THUMB_LENGTH_SCALE = 1.15
+
 # Thumb: rests out to the -X side and a little below the palm, curls across the palm.
 _THUMB_DIRECTION = (-0.72, 0.62, -0.30)
 _THUMB_CURL = (0.75, 0.15, -0.65)
 
 
-def _human_fingers(length_scale=1.0, girth_scale=1.0, spread=1.0, palm_width=0.084):
-    """Five fingers of a human-like right hand (MANO-like proportions at scale 1)."""
+def _human_fingers(length_scale=1.0, girth_scale=1.0, spread=1.0, palm_width=0.084, thumb_length_scale=None):
+    """Five fingers of a human-like right hand (MANO-like proportions at scale 1); the thumb's
+    links scale by ``thumb_length_scale`` (default: ``length_scale``)."""
     s, g = length_scale, girth_scale
+    ts = s if thumb_length_scale is None else thumb_length_scale
     half = palm_width / 2
     xs = (-0.36 * half * 2, -0.12 * half * 2, 0.12 * half * 2, 0.35 * half * 2)
     ys = (0.090, 0.093, 0.089, 0.081)
@@ -45,7 +52,7 @@ def _human_fingers(length_scale=1.0, girth_scale=1.0, spread=1.0, palm_width=0.0
             "thumb",
             base=(-0.020 * palm_width / 0.084, 0.020, -0.006),
             direction=_THUMB_DIRECTION,
-            lengths=tuple(l * s for l in (0.042, 0.032, 0.028)),
+            lengths=tuple(l * ts for l in (0.042, 0.032, 0.028)),
             radii=tuple(r * g for r in (0.0125, 0.0102, 0.0092, 0.0078)),
             joints=(_CMC, _THUMB_MCP, _THUMB_IP),
             curl_toward=_THUMB_CURL,
@@ -95,11 +102,14 @@ def human_alt_spec(resolution: float = 0.002) -> HandSpec:
 
 
 def witch_spec(resolution: float = 0.002) -> HandSpec:
-    """Long thin fingers on a narrow palm (the paper's witch hand)."""
+    """Long thin fingers on a narrow palm (the paper's witch hand). Finger lengths follow the
+    paper's lambda_A for its witch ("a satisfactory lambda_A extended the axis along the full
+    length of the target finger"): 1.55 on index to pinky, 1.15 on the thumb."""
     return HandSpec(
         name="witch",
         palm=PalmSpec(width=0.078, length=0.100, thickness=0.022, start=-0.004, rounding=0.009),
-        fingers=_human_fingers(length_scale=1.55, girth_scale=0.78, spread=1.2, palm_width=0.078),
+        fingers=_human_fingers(length_scale=1.55, girth_scale=0.78, spread=1.2, palm_width=0.078,
+                               thumb_length_scale=WITCH_THUMB_LENGTH_SCALE),
         wrist=_WRIST,
         forearm_length=0.03,
         forearm_radius=0.016,

@@ -152,19 +152,20 @@ class Markers:
     (cm): |d|^2 within about delta, then growing like 2 delta |d| (with the default 0.05 cm,
     beyond a millimetre a pair costs its distance in mm, the paper's "L2 distance"), so a
     marker that cannot be met pulls with a bounded force. Measured (natural-speed bottle
-    grasp, proposed annotations): on the long-fingered witch the markers cannot all be met
-    (median 15-17 mm off) and "huber" lowers its median contact distance from 3.40 to 2.86 mm,
-    but on the identity retarget the weaker pull near the markers lets the prior open the
-    fingers: finger RMSE 4.3 deg instead of 1.2-1.5. Either way a marker of K pairs (area,
-    many-to-one) weighs each pair 1/K, so every marker counts once.
+    grasp, proposed annotations, on the earlier witch whose thumb was 1.55x the source's): the
+    witch's markers cannot all be met (median 15-17 mm off) and "huber" lowered its median
+    contact distance from 3.40 to 2.86 mm, but on the identity retarget the weaker pull near
+    the markers lets the prior open the fingers: finger RMSE 4.3 deg instead of 1.2-1.5.
+    Either way a marker of K pairs (area, many-to-one) weighs each pair 1/K, so every marker
+    counts once.
 
     ``scale_fingers`` (off in both presets): re-place the source markers of each finger for
     the target's link lengths (:func:`retarget_core.solve.targets.scale_finger_markers`), so
     the markers ask for the source's joint angles rather than the source's marker positions.
-    Measured on the witch (same run as above): markers met to 3.6 mm instead of 15 mm, but the
-    median contact distance rises from 3.40 to 3.95 mm: the contacts carried through the atlas
+    Measured on that witch (same run as above): markers met to 3.6 mm instead of 15 mm, but the
+    median contact distance rose from 3.40 to 3.95 mm: the contacts carried through the atlas
     (stretched by lambda_a = 1.5 along each finger) want a different pose from the source's
-    angles. With the markers off altogether (lambda_m = 0) the contacts alone reach 2.71 mm."""
+    angles. With the markers off altogether (lambda_m = 0) the contacts alone reached 2.71 mm."""
 
     distance: str = "squared"
     huber_width: float = 0.05
