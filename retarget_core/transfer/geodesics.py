@@ -257,14 +257,17 @@ class LogChart:
         """faces (F, 3); coords (V, 2); radius (m): the chart's extent; valid_faces (F,) bool;
         distance (V,) geodesic distance of the vertices from the landmark (ranks the sheets
         where the layout still overlaps itself)."""
-        tri = coords[faces]  # (F, 3, 2)
-        reach = np.linalg.norm(tri, axis=2).max(axis=1)
-        # Only the faithful part near the landmark (see SurfaceGeometry.valid_chart_faces).
-        keep = np.nonzero((reach <= radius) & valid_faces)[0]
+        # Only the faithful part near the landmark (see SurfaceGeometry.valid_chart_faces); laid
+        # out from the valid faces alone, a small part of a large mesh.
+        valid = np.nonzero(valid_faces)[0]
+        tri = coords[faces[valid]]  # (K', 3, 2)
+        inside = np.linalg.norm(tri, axis=2).max(axis=1) <= radius
+        keep, tri = valid[inside], tri[inside]
         if len(keep) == 0:
-            keep = np.argsort(reach)[:1]
+            keep = np.argsort(np.linalg.norm(coords[faces], axis=2).max(axis=1))[:1]
+            tri = coords[faces[keep]]
         self.face_ids = keep
-        self.tri = tri[keep]
+        self.tri = tri
         self.reach = distance[faces[keep]].mean(axis=1)
         self._tree = cKDTree(self.tri.mean(axis=1))
 
