@@ -55,10 +55,13 @@ def test_atlas_cache_is_pruned_to_its_budget(tmp_path_factory, inputs):
         ids = upload_inputs(c, inputs)
         job = c.wait(c.submit(**ids, overrides=FAST, evaluate=False)["id"], timeout=300)
         assert job["state"] == "succeeded", job["error"]
+        # the runner unlinks the file and then logs it: wait for both, the test must not read the
+        # log in between (CI once did)
         deadline = time.monotonic() + 10
-        while list((data / "cache" / "atlas").glob("*.npz")):
+        while list((data / "cache" / "atlas").glob("*.npz")) or "atlas cache: removed" not in svc.log.read_text():
             assert time.monotonic() < deadline, "the atlas cache was not pruned"
             time.sleep(0.1)
+        assert not list((data / "cache" / "atlas").glob("*.npz"))
         assert "atlas cache: removed 1 files" in svc.log.read_text()  # it was there, and went
     finally:
         svc.stop()
