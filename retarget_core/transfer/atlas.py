@@ -118,34 +118,16 @@ class Atlas:
         self.landmark_curve = np.array(landmark_curve, dtype=np.int64)
         self.landmark_index = np.array(landmark_index, dtype=np.int64)
 
-        # Source charts: every landmark's log map over all source vertices, angle 0 along the
-        # curve, and where each is trustworthy.
+        # One log map per landmark on each hand. Source charts: over all source vertices, angle
+        # 0 along the curve, and where each is trustworthy. Target charts: laid out for point
+        # location. Both hands' charts go to one pool of workers (no idle tail between them).
         n_landmarks = len(self.landmark_curve)
-        n_faces = len(source.faces)
-        self.source_coords = np.zeros((n_landmarks, len(source.vertices), 2), dtype=np.float32)
-        self.source_valid_faces = np.zeros((n_landmarks, n_faces), dtype=bool)
-        self.source_charts: list[LogChart] = []
-        radius = np.full((n_landmarks, len(source.vertices)), np.inf)
-        items = []
+        source_items = []
         for m in range(n_landmarks):
             c = self.source_curves[self.landmark_curve[m]]
             k = self.landmark_index[m]
-            items.append((int(c.faces[k]), c.barycentric[k], c.directions[k], chart_radius))
-        for m, (coords, valid, valid_faces, distance) in enumerate(chart_fields(source, items, workers)):
-            self.source_coords[m] = coords
-            self.source_valid_faces[m] = valid_faces
-            self.source_charts.append(LogChart(source.faces, coords, chart_radius, valid_faces, distance))
-            radius[m, valid] = np.linalg.norm(coords[valid], axis=1)
-        # geodesic Voronoi cell of every vertex (vertices no chart trusts go to the nearest by
-        # the plain log-map radius)
-        untrusted = ~np.isfinite(radius).any(axis=0)
-        if untrusted.any():
-            radius[:, untrusted] = np.linalg.norm(self.source_coords[:, untrusted], axis=2)
-        self.vertex_landmark = np.argmin(radius, axis=0)
-
-        # Target charts, laid out for point location.
-        self.target_charts: list[LogChart | None] = [None] * n_landmarks
-        items, charted = [], []
+            source_items.append((int(c.faces[k]), c.barycentric[k], c.directions[k], chart_radius, True))
+        target_items, charted = [], []
         for m in range(n_landmarks):
             tc = self.target_curves[self.landmark_curve[m]]
             if tc is None:
@@ -153,10 +135,29 @@ class Atlas:
             k = self.landmark_index[m]
             lambda_s = annotations.curves[self.landmark_curve[m]].target.lambda_s
             scale = float(np.max(lambda_s(np.linspace(-np.pi, np.pi, 73))))
-            items.append((int(tc.faces[k]), tc.barycentric[k], tc.directions[k], chart_radius * max(scale, 1.0)))
+            target_items.append((int(tc.faces[k]), tc.barycentric[k], tc.directions[k],
+                                 chart_radius * max(scale, 1.0), False))
             charted.append(m)
-        for m, item, (coords, _, valid_faces, distance) in zip(charted, items, chart_fields(target, items, workers)):
-            self.target_charts[m] = LogChart(target.faces, coords, item[3], valid_faces, distance)
+        source_fields, target_fields = chart_fields([(source, source_items), (target, target_items)], workers)
+
+        self.source_coords = np.zeros((n_landmarks, len(source.vertices), 2), dtype=np.float32)
+        self.source_valid_faces = np.zeros((n_landmarks, len(source.faces)), dtype=bool)
+        self.source_charts: list[LogChart] = []
+        radius = np.full((n_landmarks, len(source.vertices)), np.inf)
+        for m, (coords, valid, valid_faces, chart) in enumerate(source_fields):
+            self.source_coords[m] = coords
+            self.source_valid_faces[m] = valid_faces
+            self.source_charts.append(LogChart.from_arrays(*chart))
+            radius[m, valid] = np.linalg.norm(coords[valid], axis=1)
+        # geodesic Voronoi cell of every vertex (vertices no chart trusts go to the nearest by
+        # the plain log-map radius)
+        untrusted = ~np.isfinite(radius).any(axis=0)
+        if untrusted.any():
+            radius[:, untrusted] = np.linalg.norm(self.source_coords[:, untrusted], axis=2)
+        self.vertex_landmark = np.argmin(radius, axis=0)
+        self.target_charts: list[LogChart | None] = [None] * n_landmarks
+        for m, (_, _, _, chart) in zip(charted, target_fields):
+            self.target_charts[m] = LogChart.from_arrays(*chart)
 
     @property
     def n_landmarks(self) -> int:
@@ -519,35 +520,51 @@ def _unlink(path: Path) -> bool:
 
 # ---- per-landmark charts, optionally in worker processes ----------------------------------------
 def _one_chart(geometry: SurfaceGeometry, item):
-    face, barycentric, direction, reach = item
+    face, barycentric, direction, reach, with_coords = item
     coords = geometry.log_map(face, barycentric, direction)
     distance = geometry.geodesic_distance(face, barycentric)
     valid = geometry.valid_chart_vertices(face, barycentric, coords, distance)
-    return coords, valid, geometry.valid_chart_faces(coords, valid, distance, reach), distance
+    valid_faces = geometry.valid_chart_faces(coords, valid, distance, reach)
+    chart = LogChart(geometry.faces, coords, reach, valid_faces, distance).to_arrays()
+    if not with_coords:  # a target chart needs its layout only: send back no more than that
+        return None, None, valid_faces, chart
+    return coords, valid, valid_faces, chart
 
 
 _CHART_WORKER: dict = {}
 
 
-def _init_chart_worker(vertices, faces, name):
-    _CHART_WORKER["geometry"] = SurfaceGeometry(vertices, faces, name=name)
+def _init_chart_worker(meshes):
+    _CHART_WORKER["meshes"], _CHART_WORKER["geometry"] = meshes, {}
 
 
-def _chart_batch(items):
-    return [_one_chart(_CHART_WORKER["geometry"], item) for item in items]
+def _chart_batch(surface: int, items):
+    geometry = _CHART_WORKER["geometry"].get(surface)
+    if geometry is None:  # built (and its solvers factorised) on this worker's first use
+        vertices, faces, name = _CHART_WORKER["meshes"][surface]
+        geometry = _CHART_WORKER["geometry"][surface] = SurfaceGeometry(vertices, faces, name=name)
+    return [_one_chart(geometry, item) for item in items]
 
 
-def chart_fields(geometry: SurfaceGeometry, items, workers: int = 1) -> list:
-    """For each (face, barycentric (3,), zero direction (3,), reach m) landmark: its log-map
-    coordinates (V, 2), trusted vertices (V,), chart faces (F,) and heat distance (V,). Worker
-    processes rebuild the geometry (potpourri3d solvers do not pickle)."""
-    workers = max(1, min(int(workers), len(items) // 8))
+def chart_fields(jobs, workers: int = 1) -> list[list]:
+    """Charts of landmarks on one or more surfaces. ``jobs``: [(geometry, items)], an item being
+    (face, barycentric (3,), zero direction (3,), reach m, with_coords). Per job, per item: log-map
+    coordinates (V, 2) and trusted vertices (V,) (None unless with_coords), chart faces (F,)
+    and the chart's :meth:`LogChart.to_arrays`. Worker processes rebuild the geometries
+    (potpourri3d solvers do not pickle) and take small batches from one queue, so neither hand
+    waits for the other."""
+    total = sum(len(items) for _, items in jobs)
+    workers = max(1, min(int(workers), total // 8))
     if workers == 1:
-        return [_one_chart(geometry, item) for item in items]
+        return [[_one_chart(geometry, item) for item in items] for geometry, items in jobs]
     from concurrent.futures import ProcessPoolExecutor
 
-    chunk = max(1, len(items) // (workers * 4))
-    with ProcessPoolExecutor(workers, initializer=_init_chart_worker,
-                             initargs=(geometry.vertices, geometry.faces, geometry.name)) as pool:
-        parts = pool.map(_chart_batch, [items[k:k + chunk] for k in range(0, len(items), chunk)])
-        return [field for part in parts for field in part]
+    chunk = max(1, min(16, total // (workers * 4)))
+    tasks = [(j, items[k:k + chunk]) for j, (_, items) in enumerate(jobs) for k in range(0, len(items), chunk)]
+    meshes = [(g.vertices, g.faces, g.name) for g, _ in jobs]
+    with ProcessPoolExecutor(workers, initializer=_init_chart_worker, initargs=(meshes,)) as pool:
+        parts = list(pool.map(_chart_batch, *zip(*tasks)))
+    out: list[list] = [[] for _ in jobs]
+    for (j, _), part in zip(tasks, parts):
+        out[j] += part
+    return out

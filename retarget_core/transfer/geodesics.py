@@ -147,24 +147,23 @@ class SurfaceGeometry:
         tri2 = coords[self.faces[ids]]
         centroid = tri2.mean(axis=1)
         near = distance[self.faces[ids]].mean(axis=1)
-        k = min(16, len(ids))
-        tree = cKDTree(centroid)
-        shadowed = np.zeros(len(ids), dtype=bool)
         # A triangle whose centroid lies strictly inside a geodesically nearer triangle overlaps it
         # in the layout (partial overlaps that miss the centroid are caught at transfer time).
-        for w in (None,):
-            sample = centroid if w is None else 0.7 * tri2[:, w] + 0.3 * centroid
-            _, cand = tree.query(sample, k=k)
-            t = tri2[cand]  # (n, k, 3, 2)
-            a, b, c = t[..., 0, :], t[..., 1, :], t[..., 2, :]
-            v0, v1, v2 = b - a, c - a, sample[:, None, :] - a
-            den = v0[..., 0] * v1[..., 1] - v1[..., 0] * v0[..., 1]
-            den = np.where(np.abs(den) < 1e-300, 1e-300, den)
-            beta = (v2[..., 0] * v1[..., 1] - v1[..., 0] * v2[..., 1]) / den
-            gamma = (v0[..., 0] * v2[..., 1] - v2[..., 0] * v0[..., 1]) / den
-            inside = (beta > 1e-9) & (gamma > 1e-9) & (1 - beta - gamma > 1e-9)
-            shadowed |= (inside & (near[cand] < near[:, None] - 1e-12)
-                         & (cand != np.arange(len(ids))[:, None])).any(axis=1)
+        # Each triangle's barycentric map (inverse of its edge matrix) is formed once, and only
+        # the nearer of the 16 closest triangles are tested.
+        _, cand = cKDTree(centroid).query(centroid, k=min(16, len(ids)))
+        rows, cols = np.nonzero((near[cand] < near[:, None] - 1e-12) & (cand != np.arange(len(ids))[:, None]))
+        other = cand[rows, cols]
+        origin = tri2[:, 0]
+        e1, e2 = tri2[:, 1] - origin, tri2[:, 2] - origin
+        det = e1[:, 0] * e2[:, 1] - e2[:, 0] * e1[:, 1]
+        inv = 1.0 / np.where(np.abs(det) < 1e-300, 1e-300, det)
+        d = centroid[rows] - origin[other]
+        beta = (d[:, 0] * e2[other, 1] - e2[other, 0] * d[:, 1]) * inv[other]
+        gamma = (e1[other, 0] * d[:, 1] - d[:, 0] * e1[other, 1]) * inv[other]
+        inside = (beta > 1e-9) & (gamma > 1e-9) & (1 - beta - gamma > 1e-9)
+        shadowed = np.zeros(len(ids), dtype=bool)
+        shadowed[rows[inside]] = True
         keep[ids[shadowed]] = False
         return keep
 
