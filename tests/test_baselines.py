@@ -56,6 +56,11 @@ def test_baseline_gradient_and_residual_form(setup, method):
     assert np.isclose(r @ r, value, rtol=1e-9)
     fd_r = _fd(lambda x: objective.residuals(x)[0], q).T
     assert np.abs(jac - fd_r).max() <= 1e-5 * np.abs(fd_r).max()
+    # the Gauss-Newton forms see the baseline's key vectors too
+    cost, g, h = objective.normal_equations(q)
+    assert np.isclose(cost, r @ r, rtol=1e-12) and np.isclose(objective.residual_cost(q), r @ r, rtol=1e-12)
+    assert np.allclose(g, jac.T @ r, rtol=1e-10, atol=1e-10 * np.abs(g).max())
+    assert np.allclose(h, jac.T @ jac, rtol=1e-10, atol=1e-10 * np.abs(h).max())
 
 
 def test_keyvector_sets_and_pinch_projection(setup):

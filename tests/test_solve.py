@@ -102,6 +102,27 @@ def test_residual_form_equals_objective_and_its_jacobian_matches(setup):
 
 
 @pytest.mark.parametrize("distance", ["squared", "huber"])
+def test_normal_equations_and_residual_cost_equal_the_residual_form(setup, distance):
+    """What the warm start uses: (sum r^2, J^T r, J^T J) summed per term without forming J, and
+    the Jacobian-free sum r^2 of a trial step, against the stacked residuals and Jacobian."""
+    problem = _problem(setup, marker_distance=distance, lambda_t=0.0, lambda_p=0.0)
+    objective = problem.objective()
+    f = _busiest_frame(problem)
+    objective.set_frame(problem.frame_data(f))
+    objective.set_seed(setup[1].dof_values[f])
+    rng = np.random.default_rng(21)
+    for _ in range(3):
+        q = setup[1].dof_values[f] + rng.normal(scale=0.1, size=problem.rig.n_dofs)
+        r, jac = objective.residuals(q)
+        cost, g, h = objective.normal_equations(q)
+        assert np.isclose(cost, r @ r, rtol=1e-12)
+        assert np.isclose(objective.residual_cost(q), r @ r, rtol=1e-12)
+        assert np.allclose(g, jac.T @ r, rtol=1e-10, atol=1e-10 * np.abs(g).max())
+        assert np.allclose(h, jac.T @ jac, rtol=1e-10, atol=1e-10 * np.abs(h).max())
+        assert np.allclose(h, h.T)
+
+
+@pytest.mark.parametrize("distance", ["squared", "huber"])
 def test_marker_term_gradient_and_residual_form_for_each_distance(setup, distance):
     problem = _problem(setup, marker_distance=distance, lambda_c=0.0, lambda_t=0.0, lambda_j=0.0, lambda_p=0.0)
     objective = problem.objective()

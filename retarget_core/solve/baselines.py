@@ -164,17 +164,19 @@ class KeyvectorObjective(FrameObjective):
             grad = grad + self.kin.points_vjp(pose, self.key_binding, self.average.T @ cot_keys)
         return value, grad
 
-    def residuals(self, q: np.ndarray):
-        r, jac = super().residuals(q)
-        pose = self.kin.pose(q)
-        x, jx = self.kin.points_jacobian(pose, self.key_binding)  # (Mt, 3), (Mt, 3, D)
+    def _residual_blocks(self, pose, q: np.ndarray, jacobian: bool = True) -> list:
+        blocks = super()._residual_blocks(pose, q, jacobian)
+        x, jx = (self.kin.points_jacobian(pose, self.key_binding) if jacobian  # (Mt, 3), (Mt, 3, D)
+                 else (self.kin.points(pose, self.key_binding), None))
         keys = self.average @ x
-        jk = np.einsum("km,mjd->kjd", self.average, jx)
         aim, weight = self._aims()
-        root = np.sqrt(weight)[:, None]
-        rk = (((keys[self.vec_b] - keys[self.vec_a]) * MM - aim) * root).ravel()
-        jv = ((jk[self.vec_b] - jk[self.vec_a]) * MM * root[:, :, None]).reshape(-1, len(q))
-        return np.concatenate([r, rk]), np.vstack([jac, jv])
+        root = np.sqrt(weight)
+        rk = ((keys[self.vec_b] - keys[self.vec_a]) * MM - aim) * root[:, None]
+        jv = None
+        if jx is not None:
+            jk = np.einsum("km,dam->dak", self.average, jx.transpose(2, 1, 0))  # (D, 3, K)
+            jv = ((jk[:, :, self.vec_b] - jk[:, :, self.vec_a]) * (MM * root)).reshape(len(q), -1)
+        return blocks + [(rk.T.ravel(), jv)]
 
 
 def keyvector_beta(target_rest_markers: np.ndarray, pair_target: np.ndarray, names: list,

@@ -222,15 +222,43 @@ class FrameObjective:
         """Least-squares form of the smooth terms: r (M,) and dr/dq (M, D) with sum(r**2) equal
         to the markers, contacts (distance and normal) and prior part of E(q). The table and
         penetration hinges are left out (they are zero almost everywhere and MMA, which sees
-        the whole objective, settles them). Used by the Gauss-Newton warm start."""
+        the whole objective, settles them)."""
         self.evaluations += 1
+        blocks = self._residual_blocks(self.kin.pose(q), q)
+        if not blocks:
+            return np.zeros(0), np.zeros((0, len(q)))
+        return np.concatenate([r for r, _ in blocks]), np.hstack([jt for _, jt in blocks]).T
+
+    def normal_equations(self, q: np.ndarray):
+        """The Gauss-Newton system of :meth:`residuals` without forming the (M, D) Jacobian:
+        (sum r^2, J^T r (D,), J^T J (D, D)). Summed block by block from each term's transposed
+        Jacobian, which the kinematics hand out contiguous, so no large copy is made."""
+        self.evaluations += 1
+        n = len(q)
+        cost, g, h = 0.0, np.zeros(n), np.zeros((n, n))
+        for r, jt in self._residual_blocks(self.kin.pose(q), q):
+            cost += float(r @ r)
+            g += jt @ r
+            h += jt @ jt.T  # numpy hands A @ A.T to BLAS syrk
+        return cost, g, h
+
+    def residual_cost(self, q: np.ndarray) -> float:
+        """sum(r**2) of :meth:`residuals` at q (D,) without any Jacobian, several times cheaper:
+        all a Gauss-Newton trial step needs until it is accepted."""
+        self.evaluations += 1
+        return float(sum(r @ r for r, _ in self._residual_blocks(self.kin.pose(q), q, jacobian=False)))
+
+    def _residual_blocks(self, pose, q: np.ndarray, jacobian: bool = True) -> list:
+        """Per smooth term: (r (M_b,), transposed Jacobian dr/dq (D, M_b), None without
+        ``jacobian``). Rows of a 3D term run axis-major (all x, then all y, then all z), the
+        layout of the kinematics' (D, 3, P) Jacobians."""
         w, kin, data = self.w, self.kin, self.frame
-        pose = kin.pose(q)
-        rows, jacs = [], []
+        n = len(q)
+        blocks = []
         if self.marker_binding is not None and w.lambda_m > 0 and len(self.pair_target):
-            x, jx = kin.points_jacobian(pose, self.marker_binding)
+            x, jx = (kin.points_jacobian(pose, self.marker_binding) if jacobian
+                     else (kin.points(pose, self.marker_binding), None))
             e = (x[self.pair_target] - data.markers) * MM  # (Np, 3) mm
-            je = jx[self.pair_target] * MM  # (Np, 3, D) mm per unit DOF
             # r = s(d^2) e with s^2 = lambda w rho / d^2, so |r|^2 = lambda w rho exactly;
             # dr = s de + e (ds/dd^2) 2 e.de
             d2 = np.einsum("ij,ij->i", e, e)
@@ -241,44 +269,49 @@ class FrameObjective:
                 # rho / d^2 = 2 delta / (root + delta)
                 s = np.sqrt(w.lambda_m * self.pair_weight * 2 * self.marker_delta / (root + self.marker_delta))
                 ds = -s / (4 * root * (root + self.marker_delta))
-            rows.append((e * s[:, None]).ravel())
-            jm = je * s[:, None, None]
-            if self.marker_delta is not None:
-                jm += e[:, :, None] * (2 * ds[:, None] * np.einsum("ij,ijd->id", e, je))[:, None, :]
-            jacs.append(jm.reshape(-1, len(q)))
+            jm = None
+            if jx is not None:
+                je = jx.transpose(2, 1, 0)[:, :, self.pair_target] * MM  # (D, 3, Np) mm per unit DOF
+                jm = je * s
+                if self.marker_delta is not None:
+                    jm += e.T[None] * (2 * ds * np.einsum("ap,dap->dp", e.T, je))[:, None, :]
+                jm = jm.reshape(n, -1)
+            blocks.append(((e * s[:, None]).T.ravel(), jm))
         if self.contact_binding is not None and w.lambda_c > 0:
-            x, jx = kin.points_jacobian(pose, self.contact_binding)
+            x, jx = (kin.points_jacobian(pose, self.contact_binding) if jacobian
+                     else (kin.points(pose, self.contact_binding), None))
             s = np.sqrt(w.lambda_c * w.lambda_cd) * MM
-            rows.append(((x - data.object_points) * s).ravel())
-            jacs.append(jx.reshape(-1, len(q)) * s)
+            blocks.append((((x - data.object_points) * s).T.ravel(),
+                           None if jx is None else jx.transpose(2, 1, 0).reshape(n, -1) * s))
             if w.lambda_cn > 0:
                 # r = sqrt(k (1 + c)); dr = k dc / (2 r), floored where the normals are opposite
-                n, jn = kin.normals_jacobian(pose, self.contact_binding)
+                normal, jn = (kin.normals_jacobian(pose, self.contact_binding) if jacobian
+                              else (kin.normals(pose, self.contact_binding), None))
                 k = w.lambda_c * w.lambda_cn
-                c = np.einsum("ij,ij->i", n, data.object_normals)
+                c = np.einsum("ij,ij->i", normal, data.object_normals)
                 r = np.sqrt(np.maximum(k * (1.0 + c), 1e-12))
-                rows.append(r)
-                jacs.append(np.einsum("ijd,ij->id", jn, data.object_normals) * (k / (2 * r))[:, None])
+                blocks.append((r, None if jn is None else
+                               np.einsum("dap,pa->dp", jn.transpose(2, 1, 0), data.object_normals) * (k / (2 * r))))
         if w.lambda_j > 0:
             # signed r = sign(d) sqrt(lambda_j (smooth - eps)): smooth through d = 0
             d = (q - self.reference)[self.prior_mask]
             smooth = np.sqrt(d * d + PRIOR_EPS * PRIOR_EPS)
             r = np.sign(d) * np.sqrt(w.lambda_j * (smooth - PRIOR_EPS))
-            slope = np.where(np.abs(r) > 1e-9, w.lambda_j * np.abs(d) / smooth / (2 * np.abs(r) + 1e-300),
-                             np.sqrt(w.lambda_j / (2 * PRIOR_EPS)))
-            j = np.zeros((len(d), len(q)))
-            j[np.arange(len(d)), np.nonzero(self.prior_mask)[0]] = slope
-            rows.append(r)
-            jacs.append(j)
+            jt = None
+            if jacobian:
+                slope = np.where(np.abs(r) > 1e-9, w.lambda_j * np.abs(d) / smooth / (2 * np.abs(r) + 1e-300),
+                                 np.sqrt(w.lambda_j / (2 * PRIOR_EPS)))
+                jt = np.zeros((n, len(d)))
+                jt[np.nonzero(self.prior_mask)[0], np.arange(len(d))] = slope
+            blocks.append((r, jt))
         if self.gauge_weight > 0:
             root = self.gauge_weight ** 0.5
-            j = np.zeros((1, len(q)))
-            j[0, self.root_rotation] = root * self.gauge_direction
-            rows.append([root * float(self.gauge_direction @ (q - self.root_reference)[self.root_rotation])])
-            jacs.append(j)
-        if not rows:
-            return np.zeros(0), np.zeros((0, len(q)))
-        return np.concatenate([np.asarray(r, dtype=np.float64) for r in rows]), np.vstack(jacs)
+            jt = None
+            if jacobian:
+                jt = np.zeros((n, 1))
+                jt[self.root_rotation, 0] = root * self.gauge_direction
+            blocks.append((np.array([root * float(self.gauge_direction @ (q - self.root_reference)[self.root_rotation])]), jt))
+        return blocks
 
     def _marker_penalty(self, d2: np.ndarray):
         """rho and d rho / d(d^2) per marker pair (Np,) from the squared distances d2 (Np,) mm^2."""
