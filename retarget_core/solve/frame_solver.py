@@ -123,7 +123,7 @@ def gauss_newton_warm_start(objective: FrameObjective, seed: np.ndarray, lower: 
     factorisation is ever formed."""
     active_idx = np.nonzero(active)[0]
     q = np.clip(seed, lower, upper).copy()
-    cost = objective.residual_cost(q)
+    cost = objective.residual_cost(q)  # every cost compared below comes from residual_cost
     _, g_all, h_all = objective.normal_equations(q)
     mu = 1e-3
     for _ in range(max(0, int(iterations) - 1)):
