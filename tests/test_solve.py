@@ -322,3 +322,20 @@ def test_scale_finger_markers_keeps_the_source_proportions_and_stretches_the_wit
     # the witch's fingers are longer: the scaled tips move out
     assert np.mean(np.linalg.norm(scaled.source_positions - w_markers.source_positions, axis=2)[:, on_chain]) > 0.005
     np.testing.assert_array_equal(scaled.source_positions[:, ~on_chain], w_markers.source_positions[:, ~on_chain])
+
+
+def test_frame_solvers_run_one_blas_thread(setup):
+    """A frame worker (and the in-process solver) pins BLAS / OpenMP to one thread: with two
+    workers on two cores a second BLAS thread each oversubscribes them (the bench took 80 s
+    instead of 44 s)."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from retarget_core.solve.pipeline import _init_worker
+
+    with threadpool_limits(limits=2):
+        before = [pool["num_threads"] for pool in threadpool_info()]
+        _init_worker(_problem(setup), {})
+        after = [pool["num_threads"] for pool in threadpool_info()]
+    if not before or max(before) < 2:
+        pytest.skip("a single-core machine: BLAS runs one thread anyway")
+    assert after == [1] * len(after)
