@@ -527,7 +527,7 @@ def _one_chart(geometry: SurfaceGeometry, item):
     valid_faces = geometry.valid_chart_faces(coords, valid, distance, reach)
     chart = LogChart(geometry.faces, coords, reach, valid_faces, distance).to_arrays()
     if not with_coords:  # a target chart needs its layout only: send back no more than that
-        return None, None, valid_faces, chart
+        return None, None, None, chart
     return coords, valid, valid_faces, chart
 
 
@@ -549,8 +549,8 @@ def _chart_batch(surface: int, items):
 def chart_fields(jobs, workers: int = 1) -> list[list]:
     """Charts of landmarks on one or more surfaces. ``jobs``: [(geometry, items)], an item being
     (face, barycentric (3,), zero direction (3,), reach m, with_coords). Per job, per item: log-map
-    coordinates (V, 2) and trusted vertices (V,) (None unless with_coords), chart faces (F,)
-    and the chart's :meth:`LogChart.to_arrays`. Worker processes rebuild the geometries
+    coordinates (V, 2), trusted vertices (V,) and chart faces (F,) (all three None unless
+    with_coords), and the chart's :meth:`LogChart.to_arrays`. Worker processes rebuild the geometries
     (potpourri3d solvers do not pickle) and take small batches from one queue, so neither hand
     waits for the other."""
     total = sum(len(items) for _, items in jobs)
