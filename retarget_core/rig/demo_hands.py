@@ -24,8 +24,8 @@ _THUMB_MCP = JointSpec(("abduct", "flex", "twist"), {"abduct": (-15, 15), "flex"
 _THUMB_IP = JointSpec(("abduct", "flex", "twist"), {"abduct": (-10, 10), "flex": (-15, 90), "twist": (-10, 10)})
 
 #: The witch's thumb over the source's, from the paper's table of lambda coefficients (witch:
-#: lambda_A 1.15 on the thumb, 1.55 on the other fingers). Until stop 13 the witch's thumb was
-#: 1.55x like its fingers; see the README's motion synthesis figures for what that changes.
+#: lambda_A 1.15 on the thumb, 1.55 on the other fingers); the README's motion synthesis
+#: figures show what a 1.55x thumb does to the contact distance.
 WITCH_THUMB_LENGTH_SCALE = 1.15
 
 # Thumb: rests out to the -X side and a little below the palm, curls across the palm.

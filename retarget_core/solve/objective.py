@@ -222,7 +222,8 @@ class FrameObjective:
         """Least-squares form of the smooth terms: r (M,) and dr/dq (M, D) with sum(r**2) equal
         to the markers, contacts (distance and normal) and prior part of E(q). The table and
         penetration hinges are left out (they are zero almost everywhere and MMA, which sees
-        the whole objective, settles them)."""
+        the whole objective, settles them). The stacked, checkable form; the warm start uses
+        :meth:`normal_equations` and :meth:`residual_cost`, built from the same blocks."""
         self.evaluations += 1
         blocks = self._residual_blocks(self.kin.pose(q), q)
         if not blocks:
