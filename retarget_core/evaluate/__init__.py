@@ -32,7 +32,6 @@ from .metrics import (
     summarize_clip,
     summarize_distances,
     summarize_series,
-    to_jsonable,
 )
 
 __all__ = [
@@ -62,5 +61,4 @@ __all__ = [
     "summarize_clip",
     "summarize_distances",
     "summarize_series",
-    "to_jsonable",
 ]

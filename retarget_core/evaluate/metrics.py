@@ -10,12 +10,13 @@ per second squared / cubed for smoothness. Every summary is a small frozen datac
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, is_dataclass
+from dataclasses import asdict, dataclass
 from typing import Mapping, Sequence
 
 import numpy as np
 
 from ..errors import InputError
+from ..jsonio import to_jsonable  # also re-exported here for server/job_process.py (until it imports jsonio)
 
 #: A source contact counts as realised on the target within this distance (metres).
 DEFAULT_COVERAGE_THRESHOLD = 0.005
@@ -24,29 +25,6 @@ DEFAULT_LIMIT_TOLERANCE = 1e-6
 
 _RAD_TO_DEG = 180.0 / math.pi
 _M_TO_CM = 100.0
-
-
-def to_jsonable(value):
-    """``value`` with numpy scalars and arrays turned into Python numbers and lists, dataclasses
-    into dicts, tuples into lists and every non-finite float (NaN, inf) into None."""
-    if is_dataclass(value) and not isinstance(value, type):
-        if hasattr(value, "to_dict"):
-            return to_jsonable(value.to_dict())
-        return to_jsonable(asdict(value))
-    if isinstance(value, Mapping):
-        return {str(k): to_jsonable(v) for k, v in value.items()}
-    if isinstance(value, np.ndarray):
-        return [to_jsonable(v) for v in value.tolist()] if value.ndim else to_jsonable(value.item())
-    if isinstance(value, (list, tuple)):
-        return [to_jsonable(v) for v in value]
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        value = float(value)
-        return value if math.isfinite(value) else None
-    return value
 
 
 def _points(a, element: str) -> np.ndarray:

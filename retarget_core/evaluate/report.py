@@ -272,7 +272,7 @@ def write_evaluation(folder, *, stride: int = 1, self_intersection_stride: int |
                      render: bool = True) -> dict:
     """Evaluate the retarget output ``folder`` and write metrics.json, intersection.png,
     contact_error.png and (``render``) frames.png into it; returns {name: path}."""
-    from .metrics import to_jsonable
+    from ..jsonio import to_jsonable
 
     folder = Path(folder)
     doc = evaluate_output(folder, stride=stride, self_intersection_stride=self_intersection_stride)

@@ -38,6 +38,7 @@ import numpy as np
 from ..errors import InputError
 from ..files import atomic_path
 from ..fit.splines import BSplineCurve
+from ..jsonio import to_jsonable
 from ..rig.model import Rig
 
 FORMAT_NAME = "handretarget.animation"
@@ -51,16 +52,6 @@ def _pxr():
     from pxr import Gf, Sdf, Tf, Ts, Usd, UsdGeom, UsdSkel, Vt  # noqa: F401
 
     return Gf, Sdf, Tf, Ts, Usd, UsdGeom, UsdSkel, Vt
-
-
-def _json_default(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
 
 
 # ---- B-spline -> Ts spline ---------------------------------------------------------------
@@ -221,7 +212,7 @@ def write_animation_usd(
     _check_curves(rig, dof_curves, fps, n_frames)
     n_frames = int(n_frames)
     try:
-        metadata_json = json.dumps(metadata or {}, default=_json_default, sort_keys=True)
+        metadata_json = json.dumps(to_jsonable(metadata or {}), sort_keys=True)
     except (TypeError, ValueError) as exc:
         raise InputError(f"metadata is not JSON serialisable: {exc}", element="metadata") from exc
 
@@ -409,7 +400,7 @@ def write_animation_json(path, dof_names, times, values, extra: dict | None = No
         "extra": extra or {},
     }
     try:
-        text = json.dumps(doc, default=_json_default, indent=1)
+        text = json.dumps(to_jsonable(doc), indent=1)
     except (TypeError, ValueError) as exc:
         raise InputError(f"extra is not JSON serialisable: {exc}", element="extra") from exc
     path = Path(path)

@@ -43,6 +43,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..files import atomic_path
+from ..jsonio import to_jsonable
 from .model import DOF_KINDS, Dof, Joint, Rig, SkinnedMesh
 
 SPEC_VERSION = 1
@@ -91,14 +92,6 @@ def _usd_matrices(mats: np.ndarray):
     """(N, 4, 4) column-vector transforms -> Vt.Matrix4dArray (row-vector convention)."""
     Vt = _pxr()[6]
     return Vt.Matrix4dArray.FromNumpy(np.ascontiguousarray(np.asarray(mats, dtype=np.float64).transpose(0, 2, 1)))
-
-
-def _json_default(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
 
 
 def _write_mesh(stage, path: str, mesh: SkinnedMesh, skeleton, *, purpose: str, role: str, double_sided: bool):
@@ -158,7 +151,7 @@ def _build_stage(rig: Rig):
             attr.SetDocumentation(doc)
 
     try:
-        metadata_json = json.dumps(rig.metadata, default=_json_default, sort_keys=True)
+        metadata_json = json.dumps(to_jsonable(rig.metadata), sort_keys=True)
     except (TypeError, ValueError) as exc:
         raise InputError(f"rig metadata is not JSON serialisable: {exc}", element="metadata") from exc
     put("specVersion", T.Int, SPEC_VERSION, "version of the handretarget DOF spec stored here")
