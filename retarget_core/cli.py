@@ -92,6 +92,8 @@ def _retarget_demo(out: Path, resolution: float, time_scale: float) -> None:
     and a summary table (``out/retarget/summary.md``)."""
     from .clip import load_clip
     from .clip.demo import grasp_window, make_demo_clip, source_rig
+    from .execute import Executor, default_workers
+    from .inputs import RunInputs
     from .pairing import pair_contacts
     from .rig.demo_hands import DEMO_HANDS, demo_hand
     from .solve.config import load_config
@@ -104,15 +106,17 @@ def _retarget_demo(out: Path, resolution: float, time_scale: float) -> None:
     clip_path = out / "retarget" / f"{RETARGET_DEMO_CLIP}_grasp.npz"
     clip.save(clip_path)
     print(f"clip {clip_path}: {clip.n_frames} frames of {RETARGET_DEMO_CLIP} around the first contact")
-    pairs = pair_contacts(clip)
     config = load_config(None, "default")
     rows = ["| hand | DOFs | frames | seconds | median contact distance (mm) | failed frames |",
             "|---|---:|---:|---:|---:|---:|"]
+    pairs = pair_contacts(clip)  # the same clip for every hand: pair it once
     for name in DEMO_HANDS:
         print(f"-- {name}")
-        result, _ = _run_retarget(clip, source, demo_hand(name, resolution=resolution),
-                                  load_annotations(out / "annotations" / f"{name}.json"), config,
-                                  out / "retarget" / name, out / "rigs" / f"{name}.usda", pairs=pairs)
+        inputs = RunInputs.of(clip, source, demo_hand(name, resolution=resolution),
+                              load_annotations(out / "annotations" / f"{name}.json"), clip=clip_path,
+                              source_rig=clip.source_rig, target_rig=f"demo:{name}@{resolution:g}")
+        result, _ = _run_retarget(inputs, config, Executor(workers=default_workers()), out / "retarget" / name,
+                                  out / "rigs" / f"{name}.usda", pairs=pairs)
         s = result.summary
         rows.append(f"| {name} | {s['dofs']} | {s['frames']} | {s['seconds']:.1f} | "
                     f"{_fmt_mm(s['contact_distance_median_mm'])} | {s['failed_frames']} |")
@@ -479,13 +483,14 @@ def _parse_sets(items) -> dict:
     return out
 
 
-def _run_retarget(clip, source, target, annotations, config, out, rig_path, pairs=None):
+def _run_retarget(inputs, config, executor, out, rig_path, pairs=None):
     """Retarget with a progress bar on stderr and write the result files; (result, paths)."""
-    from .retarget import retarget
+    from .pipeline import retarget
 
     bar = _ProgressBar()
+    executor.progress = bar
     try:
-        result = retarget(clip, source, target, annotations, config, progress=bar, pairs=pairs)
+        result = retarget(inputs, config, executor, pairs=pairs)
     finally:
         bar.close()
     return result, result.write(out, rig_path)
@@ -495,31 +500,31 @@ def _fmt_mm(value) -> str:
     return "-" if value is None else f"{value:.2f}"
 
 
-def _cmd_retarget(args) -> int:
-    from .clip import load_clip
-    from .clip.demo import source_rig
-    from .rig.io import resolve_rig
-    from .solve.config import load_config
-    from .transfer.annotations import load_annotations
+def _executor(args):
+    """The executor of the command's options (--workers, --dask-scheduler, --atlas-cache)."""
+    from .execute import Executor, default_workers
 
-    overrides = _parse_sets(args.set)
-    if args.workers is not None:
-        overrides["workers"] = args.workers
-    config = load_config(args.config, args.preset, overrides)
-    clip = load_clip(args.clip)
-    target = resolve_rig(args.rig)
-    spec = args.source_rig or clip.source_rig
-    source = resolve_rig(spec) if spec else source_rig()
-    annotations = load_annotations(args.annotations)
+    return Executor(workers=args.workers or default_workers(), dask_scheduler=getattr(args, "dask_scheduler", "") or "",
+                    atlas_cache=getattr(args, "atlas_cache", None))
+
+
+def _cmd_retarget(args) -> int:
+    from .inputs import load_inputs
+    from .solve.config import load_config
+
+    config = load_config(args.config, args.preset, _parse_sets(args.set))
+    inputs = load_inputs(args.clip, args.rig, args.annotations, source_rig=args.source_rig, frames=args.frames)
     rig_path = None if str(args.rig).startswith("demo:") else args.rig
-    result, paths = _run_retarget(clip, source, target, annotations, config, Path(args.out), rig_path)
+    result, paths = _run_retarget(inputs, config, _executor(args), Path(args.out), rig_path)
     s = result.summary
-    print(f"retargeted {args.clip} onto {target.name}: {s['frames']} frames, {s['dofs']} DOFs, "
-          f"{s['control_points'] or 'no'} control points per DOF")
+    print(f"retargeted {args.clip} (frames {result.frames[0]}:{result.frames[1]}) onto {inputs.target_rig.name}: "
+          f"{s['frames']} frames, {s['dofs']} DOFs, {s['control_points'] or 'no'} control points per DOF")
     print("  seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in result.timings.items()))
     print(f"  median contact distance {_fmt_mm(s['contact_distance_median_mm'])} mm over {s['contact_frames']} "
           f"contact frames; marker error {_fmt_mm(s['marker_error_median_mm'])} mm; failed frames "
-          f"{s['failed_frames']}; unresolved entries {s['unresolved_entries']}")
+          f"{s['failed_frames']}; unresolved entries {s['unresolved_entries']}; fit failures {s['fit_failures']}")
+    for key, v in result.unused_settings.items():
+        print(f"  note: {key} = {v['value']!r} is not used: {v['why']}")
     for path in paths.values():
         print(f"wrote {path}")
     return 0
@@ -622,6 +627,14 @@ def _bench_retarget_arguments(p) -> None:
     p.add_argument("--preset", default="default")
     p.add_argument("--speedup-frames", type=int, default=4, help="frames timed with both gradient modes")
     p.add_argument("--json", action="store_true")
+
+
+def _executor_arguments(p) -> None:
+    """How a run executes (never what it computes)."""
+    p.add_argument("--workers", type=int, help="worker processes for the frame solves (default: the CPU count)")
+    p.add_argument("--dask-scheduler", default="", metavar="tcp://HOST:PORT",
+                   help="solve the frames on this Dask cluster instead")
+    p.add_argument("--atlas-cache", metavar="DIR", help="keep built contact-transfer atlases in this folder")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -732,7 +745,8 @@ def build_parser() -> argparse.ArgumentParser:
     ret.add_argument("--config", help="TOML configuration applied over the preset")
     ret.add_argument("--set", action="append", metavar="KEY=VALUE",
                      help="configuration override, e.g. solver.maxeval=50 (repeatable)")
-    ret.add_argument("--workers", type=int, help="worker processes for the frame passes")
+    ret.add_argument("--frames", metavar="START:END", help="retarget only these frames of the clip (end excluded)")
+    _executor_arguments(ret)
     ret.set_defaults(func=_cmd_retarget)
 
     ev = sub.add_parser("evaluate", help="metrics and plots of a retarget output folder (metrics.json, PNGs)")

@@ -16,7 +16,7 @@ from ..pairing.dense import pair_contacts
 from ..rig.demo_hands import demo_hand
 from ..solve.config import RetargetConfig
 from ..solve.frame_solver import solve_frame
-from ..solve.pipeline import Problem
+from ..solve.problem import Problem, method_objective
 from ..solve.targets import contact_targets, marker_targets
 from ..transfer.clip_transfer import transfer_clip
 from ..transfer.propose import propose_annotations
@@ -97,12 +97,12 @@ def gradient_speedup(clip, source, target, annotations, config: RetargetConfig, 
     MMA settings (the paper's solve: no warm start, ``maxeval`` evaluations from the rest
     fingers) on ``n_frames`` contact frames spread over the clip."""
     pairs = pair_contacts(clip)
-    transferred = transfer_clip(pairs, source, target, annotations, cache_dir=config.atlas_cache or None)
+    transferred = transfer_clip(pairs, source, target, annotations)
     markers = marker_targets(clip, source, target, annotations)
     contacts = contact_targets(clip, pairs, transferred.contacts, keep_source_gap=config.contacts.keep_source_gap)
     problem = Problem(target, config, markers, contacts, clip.object_poses, clip.table_pose, clip.table_half_extents,
                       clip.object_vertices, clip.object_faces)
-    objective = problem.objective()
+    objective = method_objective(problem, "root")  # the paper's objective, every DOF free below
     counts = np.diff(contacts.frame_offsets)
     with_contacts = np.nonzero(counts > 0)[0]
     frames = with_contacts[np.linspace(0, len(with_contacts) - 1, n_frames).astype(int)]
@@ -132,10 +132,12 @@ def gradient_speedup(clip, source, target, annotations, config: RetargetConfig, 
 
 def run_retarget_benchmark(n_frames: int = 1000, target: str = "human_alt", workers: int = 2,
                            preset: str = "default", speedup_frames: int = 8) -> dict:
-    """Time every stage of :func:`retarget_core.retarget.retarget` on a ~``n_frames`` demo clip
+    """Time every stage of :func:`retarget_core.pipeline.retarget` on a ~``n_frames`` demo clip
     onto the demo hand ``target``; peak resident memory of the process tree while it runs;
     then the gradient speed-up on ``speedup_frames`` contact frames of the same clip."""
-    from ..retarget import retarget
+    from ..execute import Executor
+    from ..inputs import RunInputs
+    from ..pipeline import retarget
 
     t0 = time.perf_counter()
     clip, source = benchmark_clip(n_frames=n_frames)
@@ -143,9 +145,9 @@ def run_retarget_benchmark(n_frames: int = 1000, target: str = "human_alt", work
     annotations = propose_annotations(source, target_rig)
     setup_seconds = time.perf_counter() - t0
     config = RetargetConfig.preset(preset)
-    config.workers = int(workers)
+    inputs = RunInputs.of(clip, source, target_rig, annotations, target_rig=f"demo:{target}")
     with PeakMemory() as memory:
-        result = retarget(clip, source, target_rig, annotations, config)
+        result = retarget(inputs, config, Executor(workers=int(workers)))
     speed = gradient_speedup(clip, source, target_rig, annotations, RetargetConfig.preset("paper"),
                              n_frames=speedup_frames)
     return {

@@ -123,10 +123,11 @@ def run_compare(clip_path, rigs, out, *, annotations=None, workers=None, stride:
     given annotation files or proposed ones, evaluate both under ``out/<rig>`` and compare them
     into ``out``."""
     from ..clip import load_clip
-    from ..clip.demo import grasp_window, source_rig
+    from ..clip.demo import grasp_window
+    from ..execute import Executor, default_workers
+    from ..inputs import RunInputs, clip_source_rig, file_sha256, resolve_rig_source
     from ..pairing import pair_contacts
-    from ..retarget import retarget
-    from ..rig.io import resolve_rig
+    from ..pipeline import retarget
     from ..solve.config import load_config
     from ..transfer.annotations import load_annotations
     from ..transfer.propose import propose_annotations
@@ -140,15 +141,20 @@ def run_compare(clip_path, rigs, out, *, annotations=None, workers=None, stride:
     clip = load_clip(clip_path)
     if frames:
         clip = grasp_window(clip, frames)
-    source = resolve_rig(clip.source_rig) if clip.source_rig else source_rig()
+    source, source_entry = resolve_rig_source(clip_source_rig(clip))
     pairs = pair_contacts(clip)
+    config = load_config(None, "default", overrides)
+    executor = Executor(workers=workers or default_workers())
     folders = []
     for k, spec in enumerate(rigs):
-        target = resolve_rig(spec)
+        target, target_entry = resolve_rig_source(spec)
         ann = load_annotations(annotations[k]) if annotations else propose_annotations(source, target)
-        config = load_config(None, "default", dict(overrides or {}, **({"workers": workers} if workers else {})))
         folder = out / f"{k + 1}_{target.name}"
-        result = retarget(clip, source, target, ann, config, pairs=pairs)
+        inputs = RunInputs.of(clip, source, target, ann)
+        inputs.sources.update(source_rig=source_entry, target_rig=target_entry)
+        inputs.sources["clip"].update(path=str(Path(clip_path).resolve()), file_sha256=file_sha256(clip_path),
+                                      window=frames)
+        result = retarget(inputs, config, executor, pairs=pairs)
         rig_path = None if str(spec).startswith("demo:") else spec
         result.write(folder, rig_path)
         write_evaluation(folder, stride=stride)

@@ -40,8 +40,10 @@ def run_grid(out, *, targets=None, clips=None, methods=METHODS, frames: int = 12
     """Run (or resume) the grid into ``out``; returns {name: path} of the table and report."""
     from ..clip import load_clip
     from ..clip.demo import DEMO_CLIPS, grasp_window, make_demo_clip, source_rig
+    from ..execute import Executor, default_workers
+    from ..inputs import RunInputs
     from ..pairing import pair_contacts
-    from ..retarget import retarget
+    from ..pipeline import retarget
     from ..rig.demo_hands import DEMO_HANDS, demo_hand
     from ..solve.config import load_config
     from ..transfer.propose import propose_annotations
@@ -87,13 +89,12 @@ def run_grid(out, *, targets=None, clips=None, methods=METHODS, frames: int = 12
                     target = demo_hand(hand)
                     annotations = propose_annotations(source, target)
                 clip, clip_pairs = clip_window(clip_name)
-                overrides = {"method": method}
-                if workers:
-                    overrides["workers"] = workers
                 t0 = time.perf_counter()
                 try:
-                    result = retarget(clip, source, target, annotations, load_config(None, "default", overrides),
-                                      pairs=clip_pairs)
+                    inputs = RunInputs.of(clip, source, target, annotations, clip=f"demo:{clip_name}[{frames}]",
+                                          source_rig="demo:source_human", target_rig=f"demo:{hand}")
+                    result = retarget(inputs, load_config(None, "default", {"method": method}),
+                                      Executor(workers=workers or default_workers()), pairs=clip_pairs)
                     result.write(cell)
                     write_evaluation(cell, stride=stride)
                 except InputError as err:  # a cell that cannot run is reported in the table, not hidden

@@ -276,6 +276,7 @@ def fit_bspline(
     max_iter: int = 40,
     extrapolation: str = "held",
     bounds: tuple[float, float] | None = None,
+    failures: list | None = None,
 ) -> BSplineCurve:
     """Least-squares clamped cubic B-spline with ``n_control`` control points.
 
@@ -290,6 +291,9 @@ def fit_bspline(
     four points per knot interval), the coefficients are re-fitted by bounded least squares
     within them, on the same knots; a B-spline lies in the convex hull of its coefficients, so
     the curve then stays within the bounds everywhere. A curve already inside is unchanged.
+
+    ``failures``: a list that gets one message per knot optimisation that failed numerically
+    (the uniform or best knots found are kept then); a failure is never silent.
 
     Raises InputError when fewer frames are usable than control points or a used value is NaN.
     """
@@ -312,7 +316,9 @@ def fit_bspline(
     best_knots = knots
     n_interior = n_control - degree - 1
     if optimize_knots and n_interior > 0 and best[1] > 0:
-        best_knots, best = _optimize_knots(x, y, best_knots, best, start, end, degree, min_gap, max_iter)
+        best_knots, best, error = _optimize_knots(x, y, best_knots, best, start, end, degree, min_gap, max_iter)
+        if error and failures is not None:
+            failures.append(error)
     coeffs = np.asarray(best[0].c, dtype=np.float64)
     if bounds is not None:
         coeffs = _bounded(x, y, best_knots, coeffs, degree, times, bounds)
@@ -339,7 +345,8 @@ def _bounded(x, y, knots, coeffs, degree, times, bounds) -> np.ndarray:
 
 
 def _optimize_knots(x, y, knots, best, start, end, degree, min_gap, max_iter):
-    """Move the interior knots to lower the least-squares residual; returns (knots, fit)."""
+    """Move the interior knots to lower the least-squares residual; returns (knots, fit, error):
+    the best knots seen and "" or, when the optimiser failed numerically, what happened."""
     from scipy.optimize import minimize
 
     n_interior = len(knots) - 2 * (degree + 1)
@@ -375,21 +382,23 @@ def _optimize_knots(x, y, knots, best, start, end, degree, min_gap, max_iter):
         return fit[1] / scale
 
     z0 = z_of(knots)
+    error = ""
     try:
         minimize(cost, z0, method="L-BFGS-B", bounds=[(-12.0, 12.0)] * len(z0),
                  options={"maxiter": int(max_iter), "eps": 1e-6})
-    except (ValueError, FloatingPointError, np.linalg.LinAlgError):
-        pass  # keep the best knots seen so far
-    return state["knots"], state["fit"]
+    except (ValueError, FloatingPointError, np.linalg.LinAlgError) as err:
+        error = f"knot optimisation failed ({type(err).__name__}: {err}); kept the best knots seen"
+    return state["knots"], state["fit"], error
 
 
 def fit_trajectory(times, q, n_control: int, mask=None, optimize_knots: bool = True, limits=None,
-                   **kwargs) -> list[BSplineCurve]:
+                   report: dict | None = None, **kwargs) -> list[BSplineCurve]:
     """One cubic B-spline per DOF, the same control-point count for every DOF.
 
     times: (F,) seconds; q: (F, D) DOF values; mask: (F, D) bool frames to use per DOF, or
     None; limits: None or (lower (D,), upper (D,)): each curve kept within its DOF's limits
-    (``bounds`` of :func:`fit_bspline`). Extra keyword arguments go to :func:`fit_bspline`."""
+    (``bounds`` of :func:`fit_bspline`); report: a dict that gets ``failures`` [{dof, error}]
+    (knot optimisations that failed). Extra keyword arguments go to :func:`fit_bspline`."""
     q = np.asarray(q, dtype=np.float64)
     times = np.asarray(times, dtype=np.float64)
     if q.ndim != 2 or q.shape[0] != times.shape[0]:
@@ -398,16 +407,21 @@ def fit_trajectory(times, q, n_control: int, mask=None, optimize_knots: bool = T
         mask = np.asarray(mask)
         if mask.shape != q.shape or mask.dtype != bool:
             raise InputError(f"mask must be a bool array of shape {q.shape}", element="mask")
-    curves = []
+    curves, failures = [], []
     for d in range(q.shape[1]):
+        errors = []
         try:
             curves.append(
                 fit_bspline(times, q[:, d], n_control, mask=None if mask is None else mask[:, d],
                             optimize_knots=optimize_knots,
-                            bounds=None if limits is None else (limits[0][d], limits[1][d]), **kwargs)
+                            bounds=None if limits is None else (limits[0][d], limits[1][d]), failures=errors,
+                            **kwargs)
             )
         except InputError as exc:
             raise InputError(str(exc), element=f"DOF {d}") from exc
+        failures += [{"dof": d, "error": e} for e in errors]
+    if report is not None:
+        report["failures"] = failures
     return curves
 
 

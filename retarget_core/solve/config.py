@@ -26,9 +26,7 @@ Configurations are built from a preset (:meth:`RetargetConfig.preset`) with an o
 file and an optional override dict applied on top (:func:`load_config`). The TOML tables and
 keys mirror the dataclasses::
 
-    workers = 4
-    dask_scheduler = "tcp://10.0.0.5:8786"   # optional: frame chunks on a Dask cluster
-    atlas_cache = "/var/cache/handretarget/atlas"   # optional: built atlases kept on disk
+    method = "contacts"
 
     [weights]
     lambda_j = 50.0
@@ -44,6 +42,11 @@ keys mirror the dataclasses::
 
 Unknown keys, wrong types and out-of-range values raise :class:`~retarget_core.errors.InputError`
 whose ``element`` is the dotted key path (``"solver.maxevals: unknown key"``).
+
+The configuration holds only what changes the result. How a run executes (worker count, Dask
+scheduler, atlas cache, progress, BLAS threads) is an :class:`~retarget_core.execute.Executor`
+passed beside it; the old top-level keys ``workers``, ``dask_scheduler`` and ``atlas_cache``
+are refused with the executor option that replaces them.
 """
 
 from __future__ import annotations
@@ -292,8 +295,26 @@ class Sampling:
     penetration_sample_stride: int = 1
 
 
-def _default_workers() -> int:
-    return os.cpu_count() or 1
+#: Keys that moved out of the run configuration into the executor: {key: what replaces it}.
+EXECUTOR_KEYS = {
+    "workers": "the executor's worker count (--workers on the command line, Executor(workers=N), "
+               "the service's --workers)",
+    "dask_scheduler": "the executor's Dask scheduler (--dask-scheduler on the command line, "
+                      "Executor(dask_scheduler=...), the service's --dask-scheduler)",
+    "atlas_cache": "the executor's atlas cache (--atlas-cache on the command line, "
+                   "Executor(atlas_cache=...); the service keeps its own)",
+}
+
+
+def check_dask_address(address: str, element: str) -> None:
+    """InputError naming ``element`` unless ``address`` is "" or ``tcp://HOST:PORT``."""
+    if not isinstance(address, str):
+        raise InputError(f"expected a string, got {address!r}", element=element)
+    if address:
+        m = _DASK_ADDRESS.fullmatch(address)
+        if m is None or not 1 <= int(m.group(1)) <= 65535:
+            raise InputError(f"expected \"\" or a scheduler address tcp://HOST:PORT, got {address!r}",
+                             element=element)
 
 
 @dataclass
@@ -330,26 +351,9 @@ class RetargetConfig:
         (7) refinement stops after 3 rounds in a row without fewer violations
         (``Refinement.patience``) and keeps the best round.
 
-    Top-level keys:
-
-    ``workers``
-        Parallel frame solves in a local process pool (1 = in-process). It also sets how many
-        sequences the root-only pass is cut into (each seeded from a rigid fit at its first
-        frame), so it is part of what determines the result.
-    ``method``
-        ``"contacts"`` (the paper) or a contact-free baseline (:data:`METHODS`).
-    ``dask_scheduler``
-        ``""`` (default): the local pool. ``"tcp://HOST:PORT"``: the frame chunks of the
-        passes run on the Dask ``distributed`` cluster behind that scheduler instead (any
-        number of ``dask worker`` processes with this package installed); a chunk whose worker
-        dies is re-run on another. ``workers`` still cuts the root-only pass, so a run gives
-        the same trajectory on a cluster as locally with the same ``workers``.
-    ``atlas_cache``
-        ``""`` (default): the contact-transfer atlas is built in memory for the run. A folder
-        path (made when missing; relative to the working directory, ``~`` expanded): built
-        atlases are also saved there, one ``<sha256 key>.npz`` per (source surface, target
-        surface, annotations), and later runs in any process load them instead of rebuilding
-        (:func:`~retarget_core.transfer.atlas.get_atlas`). It does not change the result.
+    Top-level key ``method``: ``"contacts"`` (the paper) or a contact-free baseline
+    (:data:`METHODS`); the settings a baseline does not use in its finger passes are listed in
+    result.json (:func:`~retarget_core.solve.problem.unused_settings`).
     """
 
     weights: Weights = field(default_factory=Weights)
@@ -360,14 +364,9 @@ class RetargetConfig:
     contacts: Contacts = field(default_factory=Contacts)
     markers: Markers = field(default_factory=Markers)
     sampling: Sampling = field(default_factory=Sampling)
-    workers: int = field(default_factory=_default_workers)
     #: the per-frame objective of the finger passes: "contacts" (the paper's method) or one of
     #: the contact-free baselines "fingertips" / "keyvectors" (:mod:`~retarget_core.solve.baselines`)
     method: str = "contacts"
-    #: "" = local process pool; "tcp://HOST:PORT" = run frame chunks on that Dask scheduler's workers
-    dask_scheduler: str = ""
-    #: "" = no disk cache; a folder = keep built contact-transfer atlases there across runs
-    atlas_cache: str = ""
 
     @classmethod
     def preset(cls, name: str = "default") -> "RetargetConfig":
@@ -449,16 +448,8 @@ class RetargetConfig:
             positive(fit.control_points_per_second, "fit.control_points_per_second")
         positive(self.sampling.table_sample_stride, "sampling.table_sample_stride")
         positive(self.sampling.penetration_sample_stride, "sampling.penetration_sample_stride")
-        positive(self.workers, "workers")
         if self.method not in METHODS:
             fail(f"must be one of {', '.join(METHODS)}, got {self.method!r}", "method")
-        if self.dask_scheduler:
-            m = _DASK_ADDRESS.fullmatch(self.dask_scheduler)
-            if m is None or not 1 <= int(m.group(1)) <= 65535:
-                fail(f"expected \"\" or a scheduler address tcp://HOST:PORT, got {self.dask_scheduler!r}",
-                     "dask_scheduler")
-        if "\0" in self.atlas_cache:
-            fail("a folder path must not contain a NUL character", "atlas_cache")
 
 
 # --------------------------------------------------------------------------------------------
@@ -593,6 +584,9 @@ def _apply(obj, data: Mapping[str, Any], prefix: str, source: str | None) -> Non
     section = prefix.rstrip(".")
     for k, v in data.items():
         key = f"{prefix}{k}"
+        if not prefix and k in EXECUTOR_KEYS:
+            raise InputError(f"no longer part of the run configuration (it does not change the result): "
+                             f"use {EXECUTOR_KEYS[k]}", source=source, element=key)
         if k not in names:
             raise InputError("unknown key", source=source, element=key)
         tp = hints[k]

@@ -12,6 +12,11 @@ from .objective import FrameObjective
 ROOT_TRANSLATION_WINDOW = 0.05  # metres around the seed
 ROOT_ROTATION_WINDOW = 0.6  # radians around the seed
 
+#: What a frame solve may fail with numerically: nlopt's generic failure (RuntimeError) and
+#: forced stop, floating-point and linear-algebra errors. Only these make a "failed frame";
+#: any other exception is a programming error and propagates.
+NUMERICAL_FAILURES = (RuntimeError, nlopt.ForcedStop, FloatingPointError, np.linalg.LinAlgError)
+
 SUCCESS_CODES = (nlopt.SUCCESS, nlopt.STOPVAL_REACHED, nlopt.FTOL_REACHED, nlopt.XTOL_REACHED,
                  nlopt.MAXEVAL_REACHED, nlopt.MAXTIME_REACHED)
 
@@ -42,6 +47,8 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
     differences (one extra evaluation per active DOF) — only to measure the speed-up."""
     active = np.asarray(active, dtype=bool)
     base = np.clip(np.asarray(seed, dtype=np.float64), lower, upper)
+    if not np.all(np.isfinite(base)):
+        return FrameSolution(base, np.nan, 0, -1000, "the seed is not finite (NaN in an earlier pass's result?)")
     objective.set_seed(base)
     if warm_start_iterations > 0:
         base = gauss_newton_warm_start(objective, base, lower, upper, active, warm_start_iterations)
@@ -108,8 +115,11 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
         return FrameSolution(q, value, objective.evaluations - start_evals, code)
     except nlopt.RoundoffLimited:  # not a RuntimeError: the best point so far is still good
         return FrameSolution(best["q"], best["value"], objective.evaluations - start_evals, nlopt.ROUNDOFF_LIMITED)
-    except Exception as err:  # a failed frame is reported, never silently zero
+    except NUMERICAL_FAILURES as err:  # a numerically failed frame is reported and skipped, never silently zero
+        if isinstance(err, (RecursionError, NotImplementedError)):  # RuntimeErrors that are bugs
+            raise
         return FrameSolution(base, np.nan, objective.evaluations - start_evals, -1000, f"{type(err).__name__}: {err}")
+    # anything else (TypeError, IndexError, ...) is a programming error: it fails the run
 
 
 def gauss_newton_warm_start(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, upper: np.ndarray,

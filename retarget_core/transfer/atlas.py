@@ -26,6 +26,7 @@ import hashlib
 import json
 import logging
 import os
+import zipfile
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -462,8 +463,11 @@ def _load_cached(path: Path, key: str, source: SurfaceGeometry, target: SurfaceG
         return atlas
     except InputError:
         raise  # the annotations do not fit the surfaces: the build would say the same
-    except Exception as err:  # any unreadable file is rebuilt (and replaced) instead
-        log.info("ignoring atlas cache file %s (%s: %s); rebuilding", path, type(err).__name__, err)
+    except (OSError, ValueError, KeyError, IndexError, TypeError, EOFError, zipfile.BadZipFile) as err:
+        # a truncated, foreign or stale file: say so, remove it, rebuild (the caller saves anew)
+        log.warning("corrupt atlas cache file %s (%s: %s): removed, rebuilding", path, type(err).__name__, err)
+        with contextlib.suppress(OSError):
+            path.unlink()
         return None
 
 

@@ -1,0 +1,170 @@
+"""The inputs of one retargeting run: the clip, the source and target rigs, the annotations and
+the frame range, each with the sha256 of what it was read from (provenance).
+
+:func:`load_inputs` reads them from files or demo names (what the command line, the service's
+job process and the tools call); :meth:`RunInputs.of` wraps objects already in memory (the
+demo, the grid, tests). A clip's own ``source_rig`` field may only name a demo hand: a path
+stored inside an untrusted clip is never opened (give the source rig explicitly instead).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+from dataclasses import dataclass, field, fields, is_dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .clip.format import Clip, load_clip
+from .errors import InputError
+from .rig.model import Rig
+from .transfer.annotations import Annotations, load_annotations
+
+#: The demo hand the demonstration clips are made with, when a clip names no source rig.
+DEFAULT_SOURCE_RIG = "demo:source_human@0.004"
+
+
+def file_sha256(path) -> str:
+    """Hex sha256 of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def content_sha256(obj) -> str:
+    """Hex sha256 of an in-memory input (dataclasses, arrays, numbers, strings, containers),
+    independent of the machine: arrays hash their dtype, shape and little-endian bytes."""
+    digest = hashlib.sha256()
+    _feed(digest, obj)
+    return digest.hexdigest()
+
+
+def _feed(digest, obj) -> None:
+    if is_dataclass(obj) and not isinstance(obj, type):
+        digest.update(f"<{type(obj).__name__}>".encode())
+        for f in fields(obj):
+            digest.update(f.name.encode())
+            _feed(digest, getattr(obj, f.name))
+    elif isinstance(obj, np.ndarray):
+        a = np.ascontiguousarray(obj)
+        a = a.astype(a.dtype.newbyteorder("<")) if a.dtype.byteorder == ">" else a
+        digest.update(f"array{a.dtype.str}{a.shape}".encode())
+        digest.update(a.tobytes())
+    elif isinstance(obj, dict):
+        digest.update(b"{")
+        for k in sorted(obj, key=str):
+            digest.update(str(k).encode())
+            _feed(digest, obj[k])
+        digest.update(b"}")
+    elif isinstance(obj, (list, tuple)):
+        digest.update(f"[{len(obj)}".encode())
+        for v in obj:
+            _feed(digest, v)
+    elif isinstance(obj, (bool, int, float, str, type(None), np.generic)):
+        digest.update(repr(obj.item() if isinstance(obj, np.generic) else obj).encode())
+    else:
+        raise TypeError(f"cannot hash {type(obj).__name__} as a run input")
+
+
+_FRAMES = re.compile(r"\s*(\d*)\s*:\s*(\d*)\s*")
+
+
+def parse_frames(text: str) -> tuple[int | None, int | None]:
+    """``"START:END"`` (either side may be empty) -> (start, end); a clear error otherwise."""
+    m = _FRAMES.fullmatch(str(text))
+    if m is None:
+        raise InputError(f"expected START:END (frame numbers, end excluded, either may be empty), got {text!r}",
+                         element="frames")
+    return (int(m.group(1)) if m.group(1) else None, int(m.group(2)) if m.group(2) else None)
+
+
+def frame_range(frames, n_frames: int) -> tuple[int, int]:
+    """Check a frame range (start, end) — None / missing ends mean the clip's — against a clip
+    of ``n_frames``; returns (start, end) with 0 <= start < end <= n_frames."""
+    if frames is None:
+        return 0, n_frames
+    if isinstance(frames, str):
+        frames = parse_frames(frames)
+    try:
+        start, end = frames
+    except (TypeError, ValueError):
+        raise InputError(f"expected a (start, end) pair, got {frames!r}", element="frames") from None
+    start = 0 if start is None else start
+    end = n_frames if end is None else end
+    for v in (start, end):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+            raise InputError(f"frame numbers must be integers, got {v!r}", element="frames")
+    if not 0 <= start < end <= n_frames:
+        raise InputError(f"frames {start}:{end} are not a non-empty range within the clip's 0:{n_frames}",
+                         element="frames")
+    return int(start), int(end)
+
+
+@dataclass
+class RunInputs:
+    """What one run reads. ``frames``: [start, end) of ``clip`` to retarget (None = all).
+    ``sources``: {input name: {"sha256", and "path" or "spec" when read from one}}."""
+
+    clip: Clip
+    source_rig: Rig
+    target_rig: Rig
+    annotations: Annotations
+    frames: tuple | None = None
+    sources: dict = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, clip: Clip, source_rig: Rig, target_rig: Rig, annotations: Annotations, frames=None,
+           **sources) -> "RunInputs":
+        """Inputs already in memory; their sha256 is taken from their content. ``sources``:
+        optional {name: description} (e.g. ``target_rig="demo:witch@0.003"``)."""
+        described = {}
+        for name, obj in (("clip", clip), ("source_rig", source_rig), ("target_rig", target_rig),
+                          ("annotations", annotations)):
+            described[name] = {"sha256": content_sha256(obj)}
+            if name in sources:
+                described[name]["spec"] = str(sources[name])
+        return cls(clip, source_rig, target_rig, annotations, frames, described)
+
+    def provenance(self) -> dict:
+        return {name: dict(v) for name, v in self.sources.items()}
+
+
+def resolve_rig_source(spec: str, **load_options) -> tuple[Rig, dict]:
+    """A rig from a file path or ``demo:NAME[@RES]``, with its provenance entry."""
+    from .rig.io import resolve_rig
+
+    rig = resolve_rig(spec, **load_options)
+    spec = str(spec)
+    if spec.startswith("demo:"):
+        return rig, {"spec": spec, "sha256": content_sha256(rig)}
+    return rig, {"path": str(Path(spec).resolve()), "sha256": file_sha256(spec)}
+
+
+def clip_source_rig(clip: Clip) -> str:
+    """The demo hand a clip names as its source (``DEFAULT_SOURCE_RIG`` when it names none).
+    A clip is untrusted input: a file path in its ``source_rig`` field is refused, never
+    opened."""
+    spec = clip.source_rig or DEFAULT_SOURCE_RIG
+    if not str(spec).startswith("demo:"):
+        raise InputError(f"the clip names its source rig {spec!r}, which is not a demo hand; a clip may only name "
+                         "a demo hand (demo:NAME): give the rig the clip was made with explicitly "
+                         "(--source-rig on the command line, source_rig in a job request)",
+                         source="clip", element="source_rig")
+    return spec
+
+
+def load_inputs(clip, rig, annotations, *, source_rig=None, frames=None, **rig_options) -> RunInputs:
+    """Read a run's inputs: ``clip`` and ``annotations`` file paths, ``rig`` and ``source_rig``
+    file paths or ``demo:NAME[@RES]`` (``source_rig`` None: the demo hand the clip names, see
+    :func:`clip_source_rig`), ``frames`` (start, end), ``"START:END"`` or None."""
+    loaded = load_clip(clip)
+    sources = {"clip": {"path": str(Path(clip).resolve()), "sha256": file_sha256(clip)}}
+    source, sources["source_rig"] = resolve_rig_source(source_rig or clip_source_rig(loaded), **rig_options)
+    target, sources["target_rig"] = resolve_rig_source(rig, **rig_options)
+    ann = load_annotations(annotations)
+    sources["annotations"] = {"path": str(Path(annotations).resolve()), "sha256": file_sha256(annotations)}
+    frame_range(frames, loaded.n_frames)  # a bad range is reported before any work
+    return RunInputs(loaded, source, target, ann, frames, sources)

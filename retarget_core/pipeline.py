@@ -1,0 +1,347 @@
+"""The retargeting pipeline of the paper, top to bottom (sections "Dense Contact Pairing",
+"Hand Shape Matching", "Motion Retargeting" and the appendix "Motion Retargeting Details"):
+
+    pairing -> transfer -> targets -> root pass -> full pass -> filter -> refinement -> fit -> figures
+
+:func:`retarget` is the one entry for one run: the command line, the demo, the grid, compare,
+the benchmark and the service's job process all call it. What it computes depends on the
+:class:`~retarget_core.inputs.RunInputs` and the :class:`~retarget_core.solve.config.RetargetConfig`
+alone; the :class:`~retarget_core.execute.Executor` only says where the frame solves run, where
+atlases are cached and who hears progress, so any worker count, locally or on Dask, gives the
+same DOF values.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from . import __version__
+from .clip.format import Clip
+from .errors import InputError
+from .execute import Executor, FrameRunner
+from .fit.splines import fit_trajectory
+from .inputs import RunInputs, frame_range
+from .mesh.surface_points import SurfacePoints
+from .pairing.dense import ContactPairs, pair_contacts
+from .refine.trajectory import lowpass_and_remove_peaks, refine_trajectory
+from .result import RetargetResult
+from .clip.grasp import set_root_transform  # TODO(me): rig.anatomy once moved
+from .rig.model import Rig
+from .solve.config import MIN_CONTROL_POINTS, RetargetConfig
+from .solve.problem import Problem, method_objective, unused_settings
+from .solve.targets import contact_targets, marker_targets, scale_finger_markers
+from .transfer.clip_transfer import transfer_clip
+
+#: The root-only pass is seeded sequentially within runs of this many frames, each run started
+#: from a rigid fit of the markers at its first frame; the runs are solved in parallel. Cut by
+#: the data, never by the worker count, so the result does not depend on the executor.
+ROOT_SEGMENT_FRAMES = 64
+
+
+def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | None = None, *,
+             pairs: ContactPairs | None = None) -> RetargetResult:
+    """Retarget ``inputs.clip`` (its ``inputs.frames`` range) onto ``inputs.target_rig``.
+    ``pairs``: the contact pairs of that same range when already computed (a cache: they are
+    what :func:`pair_contacts` would give)."""
+    executor = executor or Executor()
+    start = time.perf_counter()
+    first, last = frame_range(inputs.frames, inputs.clip.n_frames)
+    clip = inputs.clip if (first, last) == (0, inputs.clip.n_frames) else inputs.clip.slice(first, last)
+    source, target = inputs.source_rig, inputs.target_rig
+    n_control = check_inputs(clip, source, target, inputs.annotations, config)
+    if pairs is not None and len(pairs.frame_offsets) != clip.n_frames + 1:
+        raise InputError(f"the given contact pairs have {len(pairs.frame_offsets) - 1} frames, the clip "
+                         f"{clip.n_frames}", element="pairs")
+    timings = {"validation": time.perf_counter() - start}
+    client = executor.connect()  # an unreachable scheduler is reported before any work
+    # one BLAS / OpenMP thread here and in the workers forked from here (see build_solver_state)
+    limits = threadpool_limits(limits=executor.blas_threads)
+    try:
+        # 1. dense contact pairing: object contacts ray-cast onto the source hand
+        t0 = time.perf_counter()
+        if pairs is None:
+            executor.report("pairing", 0, 1)
+            pairs = pair_contacts(clip)
+        timings["pairing"] = time.perf_counter() - t0
+
+        # 2. contact transfer through the atlas of log-map charts; 3. per-frame targets
+        t0 = time.perf_counter()
+        executor.report("transfer", 0, 1)
+        transferred = transfer_clip(pairs, source, target, inputs.annotations, workers=executor.workers,
+                                    cache_dir=executor.cache_dir)
+        markers = marker_targets(clip, source, target, inputs.annotations)
+        if config.markers.scale_fingers:
+            markers = scale_finger_markers(markers, source, target)
+        contacts = contact_targets(clip, pairs, transferred.contacts, keep_source_gap=config.contacts.keep_source_gap)
+        timings["transfer"] = time.perf_counter() - t0
+        if len(markers.pair_target) < 3:
+            raise InputError("at least three marker pairs are needed to place the hand", element="markers")
+        problem = Problem(target, config, markers, contacts, clip.object_poses, clip.table_pose,
+                          clip.table_half_extents, clip.object_vertices, clip.object_faces)
+        method_objective(problem, "fingers")  # a baseline's missing markers are an input error, before any work
+
+        reports = {}
+        with executor.frame_runner(problem, client) as runner:
+            client = None  # the runner owns it now
+            # 4. root-only pass, seeded frame to frame
+            q, reports["root"] = root_pass(runner, problem, clip, config)
+            timings["root pass"] = reports["root"].seconds
+            # 5. full-pose pass: independent frames seeded from the root estimate
+            if config.passes.full:
+                q, reports["full"] = solve_pass(runner, np.arange(clip.n_frames), q, "full pass")
+                timings["full pass"] = reports["full"].seconds
+            # 6. low-pass and peak removal, re-solving the frames the filter moved
+            if config.passes.filter and clip.n_frames >= 8:
+                t0 = time.perf_counter()
+                q, report = filter_pass(runner, q, target, clip.fps, config)
+                if report is not None:
+                    reports["filter"] = report
+                timings["filter"] = time.perf_counter() - t0
+            # 7. acceleration refinement
+            unresolved = np.zeros(q.shape, dtype=bool)
+            if config.passes.refine and clip.n_frames >= 3:
+                t0 = time.perf_counter()
+                q, reports["refine"] = refinement(runner, q, target, clip.fps, config)
+                unresolved = reports["refine"].unresolved
+                timings["refinement"] = time.perf_counter() - t0
+    finally:
+        limits.restore_original_limits()
+        if client is not None:
+            client.close()
+
+    # 8. one cubic B-spline per DOF
+    times = np.arange(clip.n_frames) / clip.fps
+    curves, fit_report = None, None
+    if config.passes.fit:
+        executor.report("spline fit", 0, 1)
+        t0 = time.perf_counter()
+        usable = int((~unresolved).sum(axis=0).min())
+        n_control = max(MIN_CONTROL_POINTS, min(n_control, usable))
+        fit_report = {}
+        curves = fit_trajectory(times, q, n_control, mask=~unresolved, optimize_knots=config.fit.optimize_knots,
+                                limits=(target.lower, target.upper) if config.fit.respect_limits else None,
+                                report=fit_report)
+        timings["fit"] = time.perf_counter() - t0
+        executor.report("spline fit", 1, 1)
+
+    # 9. figures, at the solved frames (issue 20 moves them onto the delivered curves)
+    t0 = time.perf_counter()
+    kin = target.kinematics()
+    distance, count, marker = _solved_figures(kin, q, contacts, markers)
+    timings["figures"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - start
+    counts = run_counts(reports)
+    counts["fit"] = fit_report
+    contact_frames = count > 0
+    summary = {
+        "frames": clip.n_frames, "dofs": target.n_dofs, "control_points": n_control if curves else None,
+        "contact_frames": int(contact_frames.sum()),
+        "contact_distance_median_mm": float(np.median(distance[contact_frames])) if contact_frames.any() else None,
+        "marker_error_median_mm": float(np.nanmedian(marker)) if np.isfinite(marker).any() else None,
+        "failed_frames": len(counts["failed_frames"]), "unresolved_entries": int(unresolved.sum()),
+        "fit_failures": len(fit_report["failures"]) if fit_report else 0,
+        "transferred_share": (float(1 - transferred.contacts.dropped.mean())
+                              if len(transferred.contacts.dropped) else 1.0),
+        "seconds": timings["total"],
+    }
+    provenance = {"version": __version__, "commit": _commit(), "inputs": inputs.provenance(),
+                  "frames": [first, last], "config": config.to_dict(), "executor": executor.describe()}
+    return RetargetResult(
+        rig_name=target.name, dof_names=target.dof_names, dof_kinds=[d.kind for d in target.dofs],
+        lower=target.lower, upper=target.upper, fps=float(clip.fps), times=times, q=q, curves=curves,
+        unresolved=unresolved, timings=timings, counts=counts, contact_distance_mm=distance, contact_count=count,
+        marker_error_mm=marker, summary=summary, config=config.to_dict(), clip_source=clip.source,
+        unused_settings=unused_settings(config), frames=(first, last), provenance=provenance, rig=target,
+        object_vertices=clip.object_vertices, object_faces=clip.object_faces, object_poses=clip.object_poses,
+        table_pose=clip.table_pose, table_half_extents=clip.table_half_extents, contacts=contacts,
+        source_contact_count=np.diff(pairs.frame_offsets), source_hand=_source_snapshots(clip, count))
+
+
+def check_inputs(clip: Clip, source: Rig, target: Rig, annotations, config: RetargetConfig) -> int:
+    """Raise InputError on inputs that cannot give a result; return the control-point count.
+    Checks: both rigs (``Rig.validate``: limits that hold the rest pose, closed surface, ...),
+    the annotations' mesh signatures against the rigs' surfaces, and a clip long enough for
+    the spline (>= 4 frames and >= ``fit.control_points`` when fixed)."""
+    source.validate(source=f"source rig {source.name!r}")
+    target.validate(source=f"target rig {target.name!r}")
+    annotations.check_meshes(source.surface.faces, source.surface.n_vertices, target.surface.faces,
+                             target.surface.n_vertices, source="annotations")
+    fixed = config.fit.control_points
+    need = max(MIN_CONTROL_POINTS, fixed or 0)
+    if config.passes.fit and clip.n_frames < need:
+        why = f"fit.control_points = {fixed}" if fixed else f"a cubic B-spline has {MIN_CONTROL_POINTS} control points"
+        raise InputError(f"the clip is too short for the spline fit: {clip.n_frames} frames, at least {need} needed "
+                         f"({why})", source="clip", element="n_frames")
+    return config.n_control_points(clip.n_frames, clip.fps)
+
+
+# ---- the passes -------------------------------------------------------------------------------
+class PassReport:
+    """Frames solved, objective evaluations, failed frames [(frame, error)], seconds."""
+
+    def __init__(self, frames: int = 0):
+        self.frames, self.evaluations, self.failed, self.seconds = frames, 0, [], 0.0
+
+
+def root_segments(n_frames: int) -> list[np.ndarray]:
+    """The root pass's runs of consecutive frames (:data:`ROOT_SEGMENT_FRAMES` each, the last
+    shorter)."""
+    return [np.arange(s, min(s + ROOT_SEGMENT_FRAMES, n_frames)) for s in range(0, n_frames, ROOT_SEGMENT_FRAMES)]
+
+
+def kabsch(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Rigid transform (4, 4) moving points ``source`` (N, 3) onto ``target`` (N, 3)."""
+    cs, ct = source.mean(axis=0), target.mean(axis=0)
+    h = (source - cs).T @ (target - ct)
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    r = vt.T @ np.diag([1, 1, d]) @ u.T
+    m = np.eye(4)
+    m[:3, :3] = r
+    m[:3, 3] = ct - r @ cs
+    return m
+
+
+def root_pass(runner: FrameRunner, problem: Problem, clip: Clip, config: RetargetConfig):
+    """Paper: "we first solve for only root joint position per frame while keeping the remaining
+    joints fixed in their default positions", each frame seeded from the previous one. Each run
+    of :func:`root_segments` starts from a rigid fit of the target markers at rest onto the
+    source markers of its first frame. Returns q (T, D) and the pass's report (with
+    ``passes.root`` off: the rigid-fit seeds, held over each run)."""
+    t0 = time.perf_counter()
+    target, markers = problem.rig, problem.markers
+    rest = target.rest_pose
+    kin = target.kinematics()
+    rest_markers = kin.points(rest, kin.bind(SurfacePoints(markers.target_faces, markers.target_barycentric)))
+    root_now = kin.pose(rest).world[0]
+    segments = root_segments(clip.n_frames)
+    seeds = [set_root_transform(target, rest, kabsch(rest_markers[markers.pair_target],
+                                                     markers.source_positions[s[0]]) @ root_now) for s in segments]
+    q = np.concatenate([np.repeat(seed[None], len(s), axis=0) for s, seed in zip(segments, seeds)])
+    report = PassReport(clip.n_frames)
+    if config.passes.root:
+        for f, qf, evals, error in runner.solve_root_sequences(segments, seeds):
+            report.evaluations += evals
+            if error:
+                report.failed.append((f, error))
+            q[f] = qf
+    report.seconds = time.perf_counter() - t0
+    return q, report
+
+
+def solve_pass(runner: FrameRunner, frames, seeds: np.ndarray, label: str, keyed: bool = False):
+    """Solve ``frames`` of the finger objective independently from ``seeds`` (T, D) (all frames'
+    seeds); returns the seeds with the solved frames replaced (a failed frame keeps its seed)
+    and the report."""
+    t0 = time.perf_counter()
+    frames = np.asarray(frames, dtype=np.int64)
+    out = seeds.copy()
+    report = PassReport(len(frames))
+    for f, qf, evals, error in runner.solve(frames, seeds[frames], stage="fingers", keyed=keyed, label=label):
+        report.evaluations += evals
+        if error:
+            report.failed.append((f, error))
+        else:
+            out[f] = qf
+    report.seconds = time.perf_counter() - t0
+    return out, report
+
+
+def filter_pass(runner: FrameRunner, q: np.ndarray, rig: Rig, fps: float, config: RetargetConfig):
+    """Paper: "re-solve for the estimates after applying low-pass and peak removal filters".
+    Only the frames the filter moved beyond the re-solve tolerances are re-solved, regularised
+    toward the filtered key. Returns q and the report (None when no frame moved)."""
+    ref = config.refinement
+    rot = rig.kinematics().is_rotation
+    filtered, changed = lowpass_and_remove_peaks(q, fps, ref.lowpass_cutoff_hz, ref.peak_thresholds(rot),
+                                                 peak_window=ref.peak_window, order=ref.lowpass_order,
+                                                 change_tolerance=ref.resolve_tolerances(rot))
+    frames = np.nonzero(changed)[0]
+    if not len(frames):
+        return q, None
+    resolved, report = solve_pass(runner, frames, filtered, "filter re-solve", keyed=True)
+    q = q.copy()
+    q[frames] = resolved[frames]
+    return q, report
+
+
+def refinement(runner: FrameRunner, q: np.ndarray, rig: Rig, fps: float, config: RetargetConfig):
+    """Paper "Trajectory Refinement": frames violating E_acc are replaced per DOF by interpolation
+    and re-solved toward it, until none is left or the iterations run out."""
+    ref = config.refinement
+
+    def resolve(frames, seeds):
+        out = np.array(seeds, dtype=np.float64)
+        index = {int(f): i for i, f in enumerate(frames)}
+        for f, qf, _, error in runner.solve(frames, seeds, stage="fingers", keyed=True, label="refinement"):
+            if not error:
+                out[index[f]] = qf
+        return out
+
+    return refine_trajectory(q, fps, rig.kinematics().is_rotation, resolve, e_acc_angular=ref.e_acc_angular_si,
+                             e_acc_linear=ref.e_acc_linear_si, max_iterations=ref.max_iterations,
+                             patience=ref.patience)
+
+
+# ---- reporting --------------------------------------------------------------------------------
+def run_counts(reports: dict) -> dict:
+    """Evaluations per frame and failed frames of each pass (root, full, filter), the
+    refinement report (``RefinementReport.to_dict``) and every failed frame once."""
+    passes, failed = {}, {}
+    for name, r in reports.items():
+        if name == "refine":
+            continue
+        passes[name] = {"frames": r.frames, "evaluations": r.evaluations,
+                        "evaluations_per_frame": r.evaluations / r.frames if r.frames else 0.0,
+                        "failed": [{"frame": int(f), "error": str(e)} for f, e in r.failed]}
+        for f, e in r.failed:
+            failed.setdefault(int(f), str(e))
+    return {"passes": passes, "refinement": reports["refine"].to_dict() if "refine" in reports else None,
+            "failed_frames": [{"frame": f, "error": failed[f]} for f in sorted(failed)]}
+
+
+def _source_snapshots(clip: Clip, contact_count: np.ndarray, n: int = 4):
+    """A few frames of the source hand for side-by-side renders: frames (K,) spread over the
+    contact frames (over all frames without contact), vertices (K, V, 3) float32, faces."""
+    pool = np.nonzero(contact_count > 0)[0]
+    if len(pool) == 0:
+        pool = np.arange(clip.n_frames)
+    frames = np.unique(pool[np.linspace(0, len(pool) - 1, min(n, len(pool))).round().astype(int)])
+    return frames, clip.hand_vertices[frames].astype(np.float32), clip.hand_faces
+
+
+def _commit() -> str | None:
+    """The git commit of this checkout, when the package runs from one (else None)."""
+    root = Path(__file__).resolve().parent.parent
+    if not (root / ".git").exists():
+        return None
+    try:
+        out = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                             timeout=5, check=False)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() or None
+
+
+def _solved_figures(kin, q, contacts, markers):  # TODO(me): evaluate.metrics once there
+    n_frames = len(q)
+    distance, marker = np.full(n_frames, np.nan), np.full(n_frames, np.nan)
+    count = np.array([contacts.count(f) for f in range(n_frames)], dtype=np.int64)
+    marker_binding = kin.bind(SurfacePoints(markers.target_faces, markers.target_barycentric)) \
+        if len(markers.pair_target) else None
+    weight = markers.pair_weight / markers.pair_weight.sum() if marker_binding is not None else None
+    for f in range(n_frames):
+        pose = kin.pose(q[f])
+        if count[f]:
+            points = contacts.frame(f)[0]
+            distance[f] = 1000.0 * np.median(np.linalg.norm(kin.points(pose, kin.bind(points)) - contacts.surface_points(f),
+                                                        axis=1))
+        if marker_binding is not None:
+            x = kin.points(pose, marker_binding)[markers.pair_target]
+            marker[f] = 1000.0 * float(weight @ np.linalg.norm(x - markers.source_positions[f], axis=1))
+    return distance, count, marker

@@ -1,0 +1,172 @@
+"""The per-frame problem of the passes (paper Eq. "optframe"), as plain data a worker can
+receive, and the functions that solve frames of it.
+
+:class:`Problem` holds the target rig, the run configuration and the per-frame targets
+(markers, contacts, object, table). :func:`build_solver_state` turns it into the stateful solver
+objects of one worker (nlopt and potpourri3d objects do not pickle, so every worker builds its
+own); :func:`solve_frames` and :func:`solve_root_sequence` solve frames with them. Which
+objective a method solves, and which DOFs it moves, is decided in one place:
+:func:`method_objective` and :func:`active_dofs`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from ..mesh.surface_points import SurfacePoints
+from ..rig.model import Rig
+from .baselines import FingertipObjective, KeyvectorObjective, keyvector_beta
+from .config import RetargetConfig
+from .frame_solver import solve_frame
+from .objective import FrameData, FrameObjective
+from .targets import ContactTargets, MarkerTargets
+
+#: Settings each contact-free baseline does not use in its finger passes (the root pass, which
+#: every method shares, still uses them), with the reason; recorded in result.json.
+_UNUSED_BY_METHOD = {
+    "contacts": {},
+    "fingertips": {
+        "weights.lambda_c": "the fingertips baseline tracks fingertip markers only (lambda_c = 0 in its finger passes)",
+        "weights.lambda_cd": "no contact term in the fingertips baseline's finger passes",
+        "weights.lambda_cn": "no contact term in the fingertips baseline's finger passes",
+    },
+    "keyvectors": {
+        "weights.lambda_m": "the keyvectors baseline matches keyvectors, not markers, in its finger passes",
+        "weights.lambda_c": "no contact term in the keyvectors baseline's finger passes",
+        "weights.lambda_cd": "no contact term in the keyvectors baseline's finger passes",
+        "weights.lambda_cn": "no contact term in the keyvectors baseline's finger passes",
+        "markers.distance": "the keyvectors baseline has no marker term in its finger passes",
+        "markers.huber_width": "the keyvectors baseline has no marker term in its finger passes",
+    },
+}
+
+
+def unused_settings(config: RetargetConfig) -> dict[str, dict]:
+    """{dotted key: {"value": v, "why": text}} of the settings ``config.method`` does not use in
+    its finger passes (empty for the paper's method)."""
+    out = {}
+    for key, why in _UNUSED_BY_METHOD[config.method].items():
+        section, name = key.split(".")
+        out[key] = {"value": getattr(getattr(config, section), name), "why": why}
+    return out
+
+
+@dataclass
+class Problem:
+    """Everything a worker needs to solve any frame of a run, as plain data. Arrays: the
+    object's poses (T, 4, 4), vertices (Vo, 3) m and faces (Fo, 3); the table's pose (4, 4) and
+    half extents (3,) m, or None."""
+
+    rig: Rig
+    config: RetargetConfig
+    markers: MarkerTargets
+    contacts: ContactTargets
+    object_poses: np.ndarray
+    table_pose: np.ndarray | None
+    table_half_extents: np.ndarray | None
+    object_vertices: np.ndarray
+    object_faces: np.ndarray
+
+    def frame_data(self, f: int) -> FrameData:
+        points, obj_p, obj_n = self.contacts.frame(f)
+        return FrameData(self.markers.source_positions[f], points, obj_p, obj_n, self.object_poses[f])
+
+
+def method_objective(problem: Problem, stage: str) -> FrameObjective:
+    """The objective of ``stage`` ("root" or "fingers") for ``problem.config.method``. The root
+    pass always solves the paper's objective; the finger passes (full pass, filter re-solves,
+    refinement) solve the method's. The one place the method is switched on."""
+    m, cfg = problem.markers, problem.config
+    common = dict(table_pose=problem.table_pose, table_half_extents=problem.table_half_extents,
+                  object_vertices=problem.object_vertices, object_faces=problem.object_faces)
+    if stage == "root" or cfg.method == "contacts":
+        return FrameObjective(problem.rig, cfg, m.target_faces, m.target_barycentric, m.pair_target,
+                              m.pair_weight, **common)
+    if cfg.method == "fingertips":
+        return FingertipObjective(problem.rig, cfg, m.target_faces, m.target_barycentric, m.pair_target,
+                                  m.pair_weight, m.names, **common)
+    if cfg.method == "keyvectors":
+        kin = problem.rig.kinematics()
+        rest_markers = kin.points(problem.rig.rest_pose,
+                                  kin.bind(SurfacePoints(m.target_faces, m.target_barycentric)))
+        beta = keyvector_beta(rest_markers, m.pair_target, m.names, m.source_positions)
+        return KeyvectorObjective(problem.rig, cfg, m.target_faces, m.target_barycentric, m.pair_target,
+                                  m.pair_weight, m.names, beta=beta, **common)
+    raise ValueError(f"unknown method {cfg.method!r}")  # validated in RetargetConfig
+
+
+def active_dofs(rig: Rig, method: str, stage: str) -> np.ndarray:
+    """Bool (D,): the DOFs ``stage`` solves. The root pass moves the root only; the paper's
+    method then moves every DOF, a baseline only the fingers (it keeps the root of the root
+    pass: the paper's "ground truth root")."""
+    root = np.array([d.joint == 0 for d in rig.dofs])
+    if stage == "root":
+        return root
+    return ~root if method != "contacts" else np.ones(rig.n_dofs, dtype=bool)
+
+
+def build_solver_state(problem: Problem, blas_threads: int = 1) -> dict:
+    """The solver objects of one worker: {"problem", "root" objective, "fingers" objective}.
+    Pins BLAS / OpenMP to ``blas_threads`` in this process: the solver's matrices are small
+    (54 x a few thousand at most) and a second thread per worker only fights the other workers
+    for the cores (measured: whole bench 44 s with one thread per worker, 80 s with two)."""
+    threadpool_limits(limits=blas_threads)
+    root = method_objective(problem, "root")
+    fingers = root if problem.config.method == "contacts" else method_objective(problem, "fingers")
+    return {"problem": problem, "root": root, "fingers": fingers}
+
+
+def solve_root_sequence(state: dict, frames, seed) -> list:
+    """Root-only solves of consecutive ``frames``, each seeded from the previous solution (the
+    paper's root pass; a failed frame keeps its seed and passes it on). Returns
+    [(frame, q (D,), evaluations, error)]."""
+    out = []
+    for f in frames:
+        (_, q, evals, error), = solve_frames(state, [f], [seed], "root")
+        if not error:
+            seed = q
+        out.append((int(f), seed, evals, error))
+    return out
+
+
+def solve_frames(state: dict, frames, seeds, stage: str, keyed: bool = False) -> list:
+    """Solve ``frames`` independently from ``seeds`` (F, D) with ``state``'s objective of
+    ``stage`` ("root" or "fingers"). ``keyed``: the prior pulls toward the seed (the paper's
+    "previously existing keyed value at frame f": the filtered or interpolated value in the
+    later passes) instead of the rest pose, so a re-solve stays near the smooth key where the
+    data allow it rather than returning to the same spike. Returns
+    [(frame, q (D,), evaluations, error)]; a numerically failed frame has a non-empty error and
+    keeps its seed."""
+    problem: Problem = state["problem"]
+    objective: FrameObjective = state[stage]
+    cfg = problem.config.solver
+    rig = problem.rig
+    lower, upper = rig.lower, rig.upper
+    active = active_dofs(rig, problem.config.method, stage)
+    root_only = stage == "root"
+    settings = dict(maxeval=cfg.root_maxeval if root_only else cfg.maxeval, xtol_rel=cfg.xtol_rel,
+                    ftol_rel=cfg.ftol_rel, gradient=cfg.gradient, fd_step=cfg.fd_step,
+                    kinds=[d.kind for d in rig.dofs], root_mask=[d.joint == 0 for d in rig.dofs],
+                    algorithm=cfg.algorithm)
+    rest = rig.rest_pose
+    out = []
+    for f, seed in zip(frames, seeds):
+        objective.set_frame(problem.frame_data(int(f)))
+        objective.reference = np.asarray(seed, dtype=np.float64) if keyed else rest
+        objective.focus_samples(seed)
+        # the root pass starts from the previous frame's root: MMA alone is enough there
+        sol = solve_frame(objective, seed, lower, upper, active,
+                          warm_start_iterations=0 if root_only else cfg.warm_start_iterations, **settings)
+        evaluations = sol.evaluations
+        if sol.ok and objective.unseen_table_contact(sol.q):
+            # a point that was far from the table at the seed ended inside it: polish with it
+            objective.focus_samples(sol.q)
+            polished = solve_frame(objective, sol.q, lower, upper, active, **settings)
+            evaluations += polished.evaluations
+            if polished.ok:
+                sol = polished
+        out.append((int(f), sol.q, evaluations, sol.error))
+    return out
