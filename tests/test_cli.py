@@ -1,9 +1,13 @@
-"""The handretarget command: rig demo writes every demo hand, rig info describes each file."""
+"""The handretarget command: rig demo writes every demo hand, rig info describes each file, every
+command has its --help, and the job service is imported only when serve or token runs."""
 
+import argparse
 import json
+import os
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -132,3 +136,81 @@ def test_transfer_with_annotations_for_another_rig_is_a_clear_error(clip_dir, tm
     assert main(["transfer", "--clip", str(clip_dir / "box_pinch.npz"), "--rig", "demo:alien@0.006",
                  "--annotations", str(annotations)]) == 2
     assert "another rig" in capsys.readouterr().err
+
+
+# -- the command line as a package: every command registered, --help everywhere, the service
+# -- imported only when serve/token run and a failed import shown
+
+HANDRETARGET = Path(sys.executable).with_name("handretarget")
+COMMANDS = ["demo", "rig", "clip", "import-grab", "annotate", "transfer", "transfer-demo", "retarget", "evaluate",
+            "grid", "compare", "bench", "serve", "token"]
+
+
+def _command_paths(parser=None, path=()):
+    """Every (sub-)command of ``handretarget`` as a tuple of words, the bare command included."""
+    from retarget_core.cli import build_parser
+
+    parser = parser or build_parser()
+    yield path
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, child in action.choices.items():
+                yield from _command_paths(child, path + (name,))
+
+
+def _run(args, cwd, env=None):
+    return subprocess.run(args, capture_output=True, text=True, check=False, cwd=cwd, timeout=120,
+                          env={**os.environ, **(env or {})})
+
+
+def test_help_lists_every_command_group(tmp_path):
+    result = _run([str(HANDRETARGET), "--help"], tmp_path)
+    assert result.returncode == 0, result.stderr
+    listed = re.search(r"\{([^}]*)\}", result.stdout).group(1).split(",")
+    assert listed == COMMANDS
+
+
+@pytest.mark.parametrize("words", list(_command_paths()), ids=lambda w: " ".join(w) or "handretarget")
+def test_every_sub_command_help_exits_0(words, tmp_path):
+    result = _run([sys.executable, "-m", "retarget_core.cli", *words, "--help"], tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith(f"usage: handretarget {' '.join(words)}".rstrip()), result.stdout
+
+
+def _shadow_server(tmp_path, body: str) -> dict:
+    """An environment whose ``server`` package is one whose __init__ runs ``body``."""
+    (tmp_path / "shadow" / "server").mkdir(parents=True)
+    (tmp_path / "shadow" / "server" / "__init__.py").write_text(body + "\n")
+    return {"PYTHONPATH": str(tmp_path / "shadow")}
+
+
+@pytest.mark.parametrize("words", [["serve"], ["token", "create", "alice"]])
+def test_a_failed_service_import_is_shown_with_exit_2(words, tmp_path):
+    env = _shadow_server(tmp_path, 'raise ImportError("boom")')
+    result = _run([str(HANDRETARGET), *words, "--data-dir", str(tmp_path / "data")], tmp_path, env)
+    assert result.returncode == 2, (result.stdout, result.stderr)
+    assert result.stderr.startswith("handretarget: error: the job service needs its dependencies (")
+    assert result.stderr.rstrip().endswith(": boom")
+    assert not (tmp_path / "data").exists()
+
+
+def test_another_exception_in_the_service_import_is_not_swallowed(tmp_path):
+    env = _shadow_server(tmp_path, 'raise RuntimeError("kaboom")')
+    result = _run([str(HANDRETARGET), "serve"], tmp_path, env)
+    assert result.returncode == 1
+    assert "Traceback" in result.stderr and "RuntimeError: kaboom" in result.stderr
+    assert "needs its dependencies" not in result.stderr
+
+
+def test_the_help_of_serve_needs_no_service(tmp_path):
+    env = _shadow_server(tmp_path, 'raise ImportError("boom")')
+    result = _run([str(HANDRETARGET), "serve", "--help"], tmp_path, env)
+    assert result.returncode == 0 and "--atlas-cache-mb" in result.stdout, result.stderr
+
+
+def test_importing_the_cli_imports_neither_the_service_nor_fastapi(tmp_path):
+    code = ("import sys, retarget_core.cli as cli; cli.build_parser(); "
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'server', 'fastapi', 'uvicorn', 'numpy'}))")
+    result = _run([sys.executable, "-c", code], tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "[]"

@@ -1,0 +1,132 @@
+"""``handretarget bench [retarget|kinematics|pairing|transfer]``: performance figures. ``main``
+pins BLAS to one thread before numpy loads when the command is ``bench``."""
+
+from __future__ import annotations
+
+import json
+
+
+def add_commands(sub) -> None:
+    bench = sub.add_parser("bench", help="print performance figures (without a sub-command: the whole retarget)")
+    _bench_retarget_arguments(bench)
+    bench.set_defaults(func=_cmd_bench_retarget)
+    bench_sub = bench.add_subparsers(dest="bench_command")
+    whole = bench_sub.add_parser("retarget", help="the whole pipeline on a 1000-frame clip (the default)")
+    _bench_retarget_arguments(whole)
+    whole.set_defaults(func=_cmd_bench_retarget)
+    kin = bench_sub.add_parser("kinematics", help="FK + Jacobians of many surface points")
+    kin.add_argument("--hand", default="source_human")
+    kin.add_argument("--points", type=int, default=500)
+    kin.add_argument("--repeats", type=int, default=2000)
+    kin.add_argument("--resolution", type=float, default=0.002)
+    kin.add_argument("--json", action="store_true")
+    kin.set_defaults(func=_cmd_bench_kinematics)
+    pair = bench_sub.add_parser("pairing", help="dense contact pairing over many frames")
+    pair.add_argument("--frames", type=int, default=1000)
+    pair.add_argument("--contacts", type=int, default=300, help="contacts per frame")
+    pair.add_argument("--clip", help="time a clip file instead of the synthetic one")
+    pair.set_defaults(func=_cmd_bench_pairing)
+    xfer = bench_sub.add_parser("transfer", help="contact transfer onto a ~10k-vertex target")
+    xfer.add_argument("--frames", type=int, default=1000)
+    xfer.add_argument("--contacts", type=int, default=300, help="contacts per frame")
+    xfer.add_argument("--target", default="human_alt", help="demo hand")
+    xfer.add_argument("--resolution", type=float, default=0.0025, help="target mesh cell size (m)")
+    xfer.set_defaults(func=_cmd_bench_transfer)
+
+
+def _bench_retarget_arguments(p) -> None:
+    p.add_argument("--frames", type=int, default=1000, help="clip length (the demo clip is stretched to it)")
+    p.add_argument("--target", default="human_alt", help="demo hand (default: a 54-DOF human)")
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--preset", default="default")
+    p.add_argument("--speedup-frames", type=int, default=4, help="frames timed with both gradient modes")
+    p.add_argument("--json", action="store_true")
+
+
+def _cmd_bench_retarget(args) -> int:
+    from ..benchmarks.retarget import run_retarget_benchmark
+
+    fig = run_retarget_benchmark(n_frames=args.frames, target=args.target, workers=args.workers, preset=args.preset,
+                                 speedup_frames=args.speedup_frames)
+    if args.json:
+        print(json.dumps(fig, indent=2, default=str))
+        return 0
+    s, t = fig["summary"], fig["timings"]
+    print(f"retarget benchmark: {fig['frames']} frames of bottle_pick_place onto {fig['target']} "
+          f"({fig['dofs']} DOFs, {fig['target_vertices']} vertices), preset {fig['preset']!r}, "
+          f"{fig['workers']} workers")
+    print(f"  (set-up, not timed: clip and hands built in {fig['setup_seconds']:.1f} s)")
+    for stage, seconds in t.items():
+        if stage != "total":
+            print(f"  {stage:<12} {seconds:7.1f} s")
+    print(f"  {'whole':<12} {t['total']:7.1f} s   (target: 60 s)")
+    memory = f"{fig['peak_memory_bytes'] / 2**30:.2f} GiB" if fig["peak_memory_measured"] else "not measured (no /proc)"
+    print(f"  peak memory (PSS, process and workers): {memory}   (target: 2 GiB)")
+    g = fig["gradient"]
+    print(f"  gradient speed-up on {len(g['frames'])} contact frames, MMA {g['analytic']['objective_evaluations']:.0f} "
+          f"iterations (paper preset, no warm start): analytic {g['analytic']['ms_per_frame']:.0f} ms/frame, "
+          f"forward differences {g['forward']['ms_per_frame']:.0f} ms/frame -> {g['speedup']:.1f}x   (target: 30x)")
+    print(f"  result: median contact distance {s['contact_distance_median_mm']:.2f} mm over {s['contact_frames']} "
+          f"contact frames, {s['failed_frames']} failed frames, {s['unresolved_entries']} unresolved DOF samples")
+    return 0
+
+
+def _cmd_bench_kinematics(args) -> int:
+    from ..benchmarks.kinematics import run_kinematics_benchmark
+
+    figures = run_kinematics_benchmark(hand=args.hand, n_points=args.points, repeats=args.repeats,
+                                       resolution=args.resolution)
+    if args.json:
+        print(json.dumps(figures, indent=2))
+        return 0
+    print(f"kinematics benchmark: {figures['hand']} ({figures['dofs']} DOFs, {figures['joints']} joints, "
+          f"{figures['surface_vertices']} surface vertices), {figures['points']} surface points, one thread")
+    for key, label in (
+        ("fk", "FK (joint transforms, DOF axes)"),
+        ("fk_points_jacobians", "FK + points + point Jacobians"),
+        ("fk_points_normals_jacobians", "FK + points, normals + both Jacobians"),
+        ("fk_points_vjp", "FK + points vector-Jacobian product"),
+        ("skin_all_vertices", "skin all surface vertices"),
+    ):
+        t = figures[key]
+        print(f"  {label:<40} median {t['median_ms']:.3f} ms  (p10 {t['p10_ms']:.3f}, p90 {t['p90_ms']:.3f})")
+    return 0
+
+
+def _cmd_bench_pairing(args) -> int:
+    if args.clip:
+        import time
+
+        from ..clip import load_clip
+        from ..pairing import pair_contacts
+
+        clip = load_clip(args.clip)
+        start = time.perf_counter()
+        pairs = pair_contacts(clip)
+        seconds = time.perf_counter() - start
+        s = pairs.summary()
+        print(f"pairing benchmark on {args.clip}: {clip.n_frames} frames, {s['contacts']} contacts "
+              f"({s['contacts'] / max(s['frames_with_contacts'], 1):.0f} per contact frame), {seconds:.2f} s, "
+              f"{s['contacts'] / seconds:.0f} contacts/s; discarded {100 * s['discarded_fraction']:.1f}%, "
+              f"median gap {s['gap_median_mm']:.2f} mm")
+        return 0
+    from ..benchmarks.pairing import run_pairing_benchmark
+
+    fig = run_pairing_benchmark(n_frames=args.frames, contacts_per_frame=args.contacts)
+    print(f"pairing benchmark: {fig['frames']} frames x {fig['contacts_per_frame']} contacts "
+          f"({fig['contacts']} total), hand {fig['hand_faces']} faces, one core: {fig['seconds']:.2f} s "
+          f"({fig['ms_per_frame']:.2f} ms/frame, {fig['contacts_per_second']:.0f} contacts/s)")
+    return 0
+
+
+def _cmd_bench_transfer(args) -> int:
+    from ..benchmarks.transfer import run_transfer_benchmark
+
+    fig = run_transfer_benchmark(n_frames=args.frames, contacts_per_frame=args.contacts, target=args.target,
+                                 target_resolution=args.resolution)
+    print(f"transfer benchmark: {fig['frames']} frames x {fig['contacts_per_frame']} contacts onto {fig['target']} "
+          f"({fig['target_vertices']} vertices, {fig['landmarks']} landmarks), one thread")
+    print(f"  per-landmark set-up (once per hand pair): {fig['setup_seconds']:.1f} s")
+    print(f"  transfer of {fig['contacts']} contacts: {fig['transfer_seconds']:.2f} s "
+          f"({fig['contacts_per_second']:.0f} contacts/s), {fig['dropped']} dropped")
+    return 0

@@ -1,0 +1,104 @@
+"""``handretarget demo``: the README's main job, from the demo hands to the retarget summary."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from .annotate import _cmd_annotate_demo
+from .clip import _cmd_clip_demo, _cmd_clip_pair, _cmd_clip_render
+from .common import _fmt_mm, _run_retarget
+from .rig import _cmd_rig_demo
+from .transfer import _transfer_table
+
+
+def add_commands(sub) -> None:
+    demo = sub.add_parser("demo", help="run the main demo job")
+    demo.add_argument("--out", default="demo_out", help="output folder")
+    demo.add_argument("--resolution", type=float, default=0.003, help="demo hands' mesh cell size in metres")
+    demo.add_argument("--clip", action="append", help="only this demo clip (repeatable)")
+    demo.add_argument("--time-scale", type=float, default=1.0, help="shorten (<1) the demo clips")
+    demo.set_defaults(func=_cmd_demo)
+
+
+def _cmd_demo(args) -> int:
+    """The README's main job: the demo hand library (USD), the demonstration clips, their
+    dense contact pairing, a PNG strip of each clip, annotations from the source hand to every
+    demo hand, the contact transfer onto each (report and pictures) and the retarget of one second
+    of a clip onto every demo hand (USD animation, result and joint JSON, summary table)."""
+    out = Path(args.out)
+    print(f"== demo hand library -> {out / 'rigs'}")
+    _cmd_rig_demo(argparse.Namespace(out=out / "rigs", hand=None, resolution=args.resolution))
+    print(f"\n== demonstration clips -> {out / 'clips'}")
+    _cmd_clip_demo(argparse.Namespace(out=out / "clips", clip=args.clip, time_scale=args.time_scale,
+                                      resolution=0.004))
+    clips = [c for c in sorted((out / "clips").glob("*.npz")) if not c.name.endswith(".pairs.npz")]
+    print("\n== dense contact pairing")
+    _cmd_clip_pair(argparse.Namespace(paths=clips, epsilon=0.015, per_frame=False, out=out / "clips"))
+    print("\n== renders")
+    for path in clips:
+        _cmd_clip_render(argparse.Namespace(path=path, out=path.with_suffix(".png"), frames=None, count=6,
+                                            view="three_quarter", size="320x320"))
+    print(f"\n== annotations -> {out / 'annotations'}")
+    _cmd_annotate_demo(argparse.Namespace(out=out / "annotations", resolution=args.resolution, source_resolution=0.004))
+    print(f"\n== contact transfer onto every demo hand -> {out / 'transfer'}")
+    from ..clip import load_clip
+    from ..pairing import load_contact_pairs
+    from ..rig.demo_hands import DEMO_HANDS, demo_hand
+    from ..transfer.annotations import load_annotations
+
+    jobs = [(c.stem, load_clip(c), load_contact_pairs(c.with_name(c.stem + ".pairs.npz"))) for c in clips]
+    for name in DEMO_HANDS:
+        print(f"-- {name}")
+        _transfer_table(jobs, None, demo_hand(name, resolution=args.resolution),
+                        load_annotations(out / "annotations" / f"{name}.json"), out / "transfer" / name, None)
+    print(f"\n== retarget one second of {RETARGET_DEMO_CLIP} onto every demo hand -> {out / 'retarget'}")
+    _retarget_demo(out, args.resolution, args.time_scale)
+    return 0
+
+
+#: The demo's retarget stage: one second (RETARGET_DEMO_FRAMES at 120 fps) of this clip at its
+#: natural speed, from half a second before the first contact (reach, grasp, lift). A shortened
+#: clip (time_scale < 1) would move faster than the acceleration threshold E_acc allows.
+RETARGET_DEMO_CLIP = "bottle_pick_place"
+RETARGET_DEMO_FRAMES = 120
+
+
+def _retarget_demo(out: Path, resolution: float, time_scale: float) -> None:
+    """Retarget a short window of the demo clip onto every demo hand with the proposed
+    annotations (``out/annotations``) and the default preset; write ``out/retarget/<hand>/``
+    and a summary table (``out/retarget/summary.md``)."""
+    from ..clip import load_clip
+    from ..clip.demo import grasp_window, make_demo_clip, source_rig
+    from ..execute import Executor, default_workers
+    from ..inputs import RunInputs
+    from ..pairing import pair_contacts
+    from ..rig.demo_hands import DEMO_HANDS, demo_hand
+    from ..solve.config import load_config
+    from ..transfer.annotations import load_annotations
+
+    source = source_rig()
+    saved = out / "clips" / f"{RETARGET_DEMO_CLIP}.npz"
+    full = load_clip(saved) if time_scale == 1.0 and saved.is_file() else make_demo_clip(RETARGET_DEMO_CLIP, rig=source)
+    clip = grasp_window(full, RETARGET_DEMO_FRAMES)
+    clip_path = out / "retarget" / f"{RETARGET_DEMO_CLIP}_grasp.npz"
+    clip.save(clip_path)
+    print(f"clip {clip_path}: {clip.n_frames} frames of {RETARGET_DEMO_CLIP} around the first contact")
+    config = load_config(None, "default")
+    rows = ["| hand | DOFs | frames | seconds | median contact distance (mm) | failed frames |",
+            "|---|---:|---:|---:|---:|---:|"]
+    pairs = pair_contacts(clip)  # the same clip for every hand: pair it once
+    for name in DEMO_HANDS:
+        print(f"-- {name}")
+        inputs = RunInputs.of(clip, source, demo_hand(name, resolution=resolution),
+                              load_annotations(out / "annotations" / f"{name}.json"), clip=clip_path,
+                              source_rig=clip.source_rig, target_rig=f"demo:{name}@{resolution:g}")
+        result, _ = _run_retarget(inputs, config, Executor(workers=default_workers()), out / "retarget" / name,
+                                  out / "rigs" / f"{name}.usda", pairs=pairs)
+        s = result.summary
+        rows.append(f"| {name} | {s['dofs']} | {s['frames']} | {s['seconds']:.1f} | "
+                    f"{_fmt_mm(s['contact_distance_median_mm'])} | {s['failed_frames']} |")
+    table = "\n".join(rows) + "\n"
+    (out / "retarget" / "summary.md").write_text(
+        f"# Retarget of {clip_path.name} ({clip.n_frames} frames at {clip.fps:g} fps), preset default\n\n" + table)
+    print("\n" + table + f"wrote {out / 'retarget' / 'summary.md'}")

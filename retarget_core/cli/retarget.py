@@ -1,0 +1,45 @@
+"""``handretarget retarget``: one clip onto one rig."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .common import _executor, _executor_arguments, _fmt_mm, _parse_sets, _run_retarget
+
+
+def add_commands(sub) -> None:
+    ret = sub.add_parser("retarget", help="retarget a clip onto a rig: USD animation, result JSON, joint JSON")
+    ret.add_argument("--clip", required=True, help="clip .npz")
+    ret.add_argument("--rig", required=True, help="target rig: a file or demo:NAME[@RESOLUTION]")
+    ret.add_argument("--annotations", required=True, help="annotation JSON (source hand -> this rig)")
+    ret.add_argument("--out", required=True, help="output folder")
+    ret.add_argument("--source-rig", help="source rig (default: the one the clip records, else the demo source hand)")
+    ret.add_argument("--preset", default="default", choices=["default", "paper"], help="configuration preset")
+    ret.add_argument("--config", help="TOML configuration applied over the preset")
+    ret.add_argument("--set", action="append", metavar="KEY=VALUE",
+                     help="configuration override, e.g. solver.maxeval=50 (repeatable)")
+    ret.add_argument("--frames", metavar="START:END", help="retarget only these frames of the clip (end excluded)")
+    _executor_arguments(ret)
+    ret.set_defaults(func=_cmd_retarget)
+
+
+def _cmd_retarget(args) -> int:
+    from ..inputs import load_inputs
+    from ..solve.config import load_config
+
+    config = load_config(args.config, args.preset, _parse_sets(args.set))
+    inputs = load_inputs(args.clip, args.rig, args.annotations, source_rig=args.source_rig, frames=args.frames)
+    rig_path = None if str(args.rig).startswith("demo:") else args.rig
+    result, paths = _run_retarget(inputs, config, _executor(args), Path(args.out), rig_path)
+    s = result.summary
+    print(f"retargeted {args.clip} (frames {result.frames[0]}:{result.frames[1]}) onto {inputs.target_rig.name}: "
+          f"{s['frames']} frames, {s['dofs']} DOFs, {s['control_points'] or 'no'} control points per DOF")
+    print("  seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in result.timings.items()))
+    print(f"  median contact distance {_fmt_mm(s['contact_distance_median_mm'])} mm over {s['contact_frames']} "
+          f"contact frames; marker error {_fmt_mm(s['marker_error_median_mm'])} mm; failed frames "
+          f"{s['failed_frames']}; unresolved entries {s['unresolved_entries']}; fit failures {s['fit_failures']}")
+    for key, v in result.unused_settings.items():
+        print(f"  note: {key} = {v['value']!r} is not used: {v['why']}")
+    for path in paths.values():
+        print(f"wrote {path}")
+    return 0

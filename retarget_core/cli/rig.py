@@ -1,0 +1,55 @@
+"""``handretarget rig demo`` and ``handretarget rig info``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+
+def add_commands(sub) -> None:
+    rig = sub.add_parser("rig", help="hand rigs")
+    rig_sub = rig.add_subparsers(dest="rig_command", required=True)
+    rig_demo = rig_sub.add_parser("demo", help="write the demo hand library as USD files")
+    rig_demo.add_argument("--out", required=True, help="output folder")
+    rig_demo.add_argument("--hand", action="append", help="only this demo hand (repeatable)")
+    rig_demo.add_argument("--resolution", type=float, default=0.002, help="mesh cell size in metres")
+    rig_demo.set_defaults(func=_cmd_rig_demo)
+    rig_info = rig_sub.add_parser("info", help="describe a rig file (USD, URDF or MJCF)")
+    rig_info.add_argument("path")
+    rig_info.add_argument("--json", action="store_true", help="print JSON instead of text")
+    rig_info.add_argument("--root-body", default=None, help="MJCF: the hand's root body")
+    rig_info.add_argument("--wrapper-resolution", type=float, default=0.002,
+                          help="URDF/MJCF: wrapper surface cell size in metres")
+    rig_info.set_defaults(func=_cmd_rig_info)
+
+
+def _cmd_rig_demo(args) -> int:
+    from ..rig.demo_hands import DEMO_HANDS, demo_hand
+    from ..rig.io import save_rig
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    names = args.hand or list(DEMO_HANDS)
+    rows = []
+    for name in names:
+        rig = demo_hand(name, resolution=args.resolution)
+        path = out / f"{name}.usda"
+        save_rig(rig, path)
+        report = rig.surface.topology()
+        rows.append((name, rig.n_dofs, rig.surface.n_vertices, len(rig.surface.faces), report.describe(), path))
+    print(f"{'hand':<17} {'DOFs':>4} {'vertices':>9} {'faces':>7}  surface")
+    for name, n_dofs, nv, nf, topo, path in rows:
+        print(f"{name:<17} {n_dofs:>4} {nv:>9} {nf:>7}  {topo}  -> {path}")
+    return 0
+
+
+def _cmd_rig_info(args) -> int:
+    from ..rig.io import load_rig
+    from ..rig.summary import format_rig_info, rig_summary
+
+    rig = load_rig(args.path, wrapper_resolution=args.wrapper_resolution, root_body=args.root_body)
+    if args.json:
+        print(json.dumps(rig_summary(rig), indent=2))
+    else:
+        print(format_rig_info(rig, source=str(args.path)))
+    return 0
