@@ -11,9 +11,9 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from retarget_core.errors import InputError
+from retarget_core.mesh.geometry import box_signed_distance, signed_volume
 from retarget_core.evaluate import (
     IntersectionResult,
-    box_signed_distance,
     clip_intersections,
     contact_coverage,
     contact_error,
@@ -22,7 +22,6 @@ from retarget_core.evaluate import (
     dof_smoothness,
     hand_object_intersection,
     marker_error,
-    mesh_volume,
     points_inside_mesh,
     self_intersection,
     summarize_clip,
@@ -168,7 +167,7 @@ def test_finger_pushed_into_the_palm():
     # (flat, so it adds no volume).
     assert r.n_clusters == 2
     assert r.max_depth_m == pytest.approx(depth, abs=2e-4)
-    assert r.percent_of_hand == pytest.approx(100 * r.volume_m3 / (mesh_volume(v, f)), rel=1e-9)
+    assert r.percent_of_hand == pytest.approx(100 * r.volume_m3 / (signed_volume(v, f)), rel=1e-9)
     # Separated by 1 mm: nothing.
     v_apart = np.vstack([palm.vertices, fv + [0.0, 0.0, depth + 0.001]])
     assert self_intersection(v_apart, f).n_vertices == 0

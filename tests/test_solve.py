@@ -10,7 +10,7 @@ from retarget_core.mesh.surface_points import SurfacePoints
 from retarget_core.pairing.dense import pair_contacts
 from retarget_core.solve.config import RetargetConfig
 from retarget_core.solve.frame_solver import gauss_newton_warm_start, solve_frame
-from retarget_core.solve.objective import FrameData, box_sdf
+from retarget_core.solve.objective import FrameData
 from retarget_core.solve.pipeline import Problem, solve_trajectory
 from retarget_core.solve.targets import contact_targets, marker_targets
 from retarget_core.transfer.annotations import resolve_points
@@ -152,19 +152,6 @@ def test_marker_penalty_known_values(setup):
     assert np.isclose(2 * np.sqrt(d2[2]) * slope[2], 6.0, rtol=1e-5)  # d rho / d d = 2 d slope
     rho, slope = _problem(setup, marker_distance="squared").objective()._marker_penalty(d2)
     assert np.allclose(rho, d2) and np.allclose(slope, 1.0)
-
-
-def test_box_sdf_known_values():
-    pose = np.eye(4)
-    pose[:3, 3] = [1.0, 0.0, 0.0]
-    half = np.array([0.5, 0.2, 0.1])
-    points = np.array([[1.0, 0.0, 0.05],    # inside, 5 cm below the top face
-                       [1.0, 0.0, 0.3],     # 20 cm above the top face
-                       [1.8, 0.5, 0.0]])    # off an edge: (0.3, 0.3) away
-    sdf, grad = box_sdf(points, pose, half)
-    assert np.allclose(sdf, [-0.05, 0.2, np.hypot(0.3, 0.3)])
-    assert np.allclose(grad[0], [0, 0, 1]) and np.allclose(grad[1], [0, 0, 1])
-    assert np.allclose(grad[2], [np.sqrt(0.5), np.sqrt(0.5), 0])
 
 
 def test_frame_solve_from_rest_reaches_the_capture(setup):

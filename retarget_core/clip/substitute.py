@@ -12,8 +12,8 @@ from dataclasses import fields
 import numpy as np
 
 from ..errors import InputError
+from ..mesh.geometry import vertex_normals
 from ..mesh.topology import check_closed_manifold
-from ..rig.model import vertex_normals
 from .format import Clip
 
 #: metres: a contact farther than this from the new object (along its normal) is dropped

@@ -6,10 +6,8 @@ smoothness, DOF limit violations, JSON summaries)."""
 from .intersection import (
     KINDS,
     IntersectionResult,
-    box_signed_distance,
     clip_intersections,
     hand_object_intersection,
-    mesh_volume,
     points_inside_mesh,
     self_intersection,
     table_intersection,
@@ -37,10 +35,8 @@ from .metrics import (
 __all__ = [
     "KINDS",
     "IntersectionResult",
-    "box_signed_distance",
     "clip_intersections",
     "hand_object_intersection",
-    "mesh_volume",
     "points_inside_mesh",
     "self_intersection",
     "table_intersection",

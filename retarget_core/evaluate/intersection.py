@@ -64,6 +64,13 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, QhullError
 
 from ..errors import InputError
+from ..mesh.geometry import (
+    box_local,
+    box_signed_distance_local,
+    face_normals,
+    signed_volume,
+    vertex_normals,
+)
 from ..mesh.topology import MeshTopologyReport, check_closed_manifold
 
 KINDS = ("hand_object", "self", "table")
@@ -251,30 +258,8 @@ def _scene(vertices: np.ndarray, faces: np.ndarray, faces_key: tuple | None = No
 
 
 # ------------------------------------------------------------------------------------------
-# small geometry helpers (public where useful on their own)
+# input checks and ray helpers
 # ------------------------------------------------------------------------------------------
-def mesh_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
-    """Signed volume (m^3) enclosed by a closed triangle mesh: the sum of the signed tetrahedra
-    (origin, a, b, c) / 6. Positive for outward-facing (counter-clockwise) faces.
-
-    vertices: (V, 3) metres; faces: (F, 3) int.
-    """
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64)
-    if len(f) == 0:
-        return 0.0
-    c = v.mean(axis=0)  # centring only improves the floating-point sum
-    a, b, d = v[f[:, 0]] - c, v[f[:, 1]] - c, v[f[:, 2]] - c
-    return float(np.einsum("ij,ij->i", a, np.cross(b, d)).sum() / 6.0)
-
-
-def box_signed_distance(points: np.ndarray, pose: np.ndarray, half_extents: np.ndarray) -> np.ndarray:
-    """Exact signed distance (m, negative inside) of points (N, 3) to a box centred on the
-    origin of ``pose`` (4, 4 world-from-box, rigid) with ``half_extents`` (3,) metres."""
-    local = _box_local(np.asarray(points, dtype=np.float64), pose)
-    return _box_sdf_local(local, np.asarray(half_extents, dtype=np.float64))
-
-
 def _check_box(pose, half_extents) -> tuple[np.ndarray, np.ndarray]:
     pose = np.asarray(pose, dtype=np.float64)
     he = np.asarray(half_extents, dtype=np.float64)
@@ -286,31 +271,6 @@ def _check_box(pose, half_extents) -> tuple[np.ndarray, np.ndarray]:
     if he.shape != (3,) or not np.all(np.isfinite(he)) or np.any(he <= 0):
         raise InputError(f"must be 3 positive numbers, got {he!r}", element="table_half_extents")
     return pose, he
-
-
-def _box_local(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    pose = np.asarray(pose, dtype=np.float64)
-    return (points - pose[:3, 3]) @ pose[:3, :3]
-
-
-def _box_sdf_local(local: np.ndarray, he: np.ndarray) -> np.ndarray:
-    q = np.abs(local) - he
-    outside = np.linalg.norm(np.maximum(q, 0.0), axis=1)
-    inside = np.minimum(q.max(axis=1), 0.0)
-    return outside + inside
-
-
-def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(V, 3) area-weighted unit vertex normals and (F, 3) unit face normals."""
-    cross = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
-    vn = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(vn, faces[:, k], cross)
-    norm = np.linalg.norm(vn, axis=1, keepdims=True)
-    vn = np.where(norm > 0, vn / np.where(norm > 0, norm, 1.0), np.array([0.0, 0.0, 1.0]))
-    fnorm = np.linalg.norm(cross, axis=1, keepdims=True)
-    fn = cross / np.where(fnorm > 0, fnorm, 1.0)
-    return vn, fn
 
 
 def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -447,7 +407,7 @@ def _hand(kind: str, hand_vertices, hand_faces, hand_volume_m3):
         return _unavailable(kind, "hand surface is not a closed manifold: " + topo.report.describe())
     if not np.all(np.isfinite(v)):
         return _unavailable(kind, "hand vertices are not all finite")
-    vol = mesh_volume(v, f)
+    vol = signed_volume(v, f)
     faces_out = f if vol >= 0 else f[:, ::-1]
     if hand_volume_m3 is None:
         hand_volume_m3 = abs(vol)
@@ -557,8 +517,8 @@ def table_intersection(
     if isinstance(hand, IntersectionResult):
         return hand
     v, topo, _, hand_volume = hand
-    local = _box_local(v, pose)  # rigid: distances and volumes are the same in the box frame
-    sdf = _box_sdf_local(local, he)
+    local = box_local(v, pose)  # rigid: distances and volumes are the same in the box frame
+    sdf = box_signed_distance_local(local, he)
     inside = (sdf < 0) & topo.referenced
     pen, labels, n_clusters = _clusters(topo.edges, inside)
     if n_clusters == 0:
@@ -597,7 +557,9 @@ def self_intersection(
         return hand
     v, topo, faces, hand_volume = hand
     n_v = len(v)
-    vn, fn = _vertex_normals(v, faces)
+    vn = vertex_normals(v, faces)
+    vn[~np.any(vn != 0, axis=1)] = (0.0, 0.0, 1.0)  # a vertex no face uses: any direction
+    fn = face_normals(v, faces)
     edge_len = np.linalg.norm(v[topo.edges[:, 0]] - v[topo.edges[:, 1]], axis=1)
     delta = _SELF_OFFSET * float(edge_len.mean())
     inter = _scene(v, faces, cache=False).intersector

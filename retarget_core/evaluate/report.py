@@ -97,7 +97,8 @@ def evaluate_output(folder, *, stride: int = 1, self_intersection_stride: int | 
     None); self intersection, the costliest, every ``self_intersection_stride``-th (default:
     ``stride``). Contact, marker, smoothness and limit figures cover every frame."""
     from ..mesh.surface_points import SurfacePoints
-    from .intersection import hand_object_intersection, mesh_volume, self_intersection, table_intersection
+    from ..mesh.geometry import signed_volume
+    from .intersection import hand_object_intersection, self_intersection, table_intersection
     from .metrics import contact_coverage, dof_limit_violations, dof_smoothness, summarize_series
 
     result, rig, scene = load_output(folder)
@@ -107,7 +108,7 @@ def evaluate_output(folder, *, stride: int = 1, self_intersection_stride: int | 
     stride = max(1, int(stride))
     self_stride = max(1, int(self_intersection_stride or stride))
     faces = rig.surface.faces
-    hand_volume = mesh_volume(kin.skin(rig.rest_pose), faces)
+    hand_volume = signed_volume(kin.skin(rig.rest_pose), faces)
     kinds = ("hand_object", "self", "table")
     percent = {k: np.full(n, np.nan) for k in kinds}
     reasons = {}

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .geometry import box_signed_distance_local
+
 
 def tapered_capsule(points: np.ndarray, a: np.ndarray, b: np.ndarray, radius_a: float, radius_b: float) -> np.ndarray:
     """Segment a-b swept by a sphere whose radius varies linearly from radius_a to radius_b."""
@@ -21,10 +23,7 @@ def rounded_box(points: np.ndarray, center: np.ndarray, rotation: np.ndarray, ha
     """Box with the given centre, rotation (3, 3, columns = box axes in world) and half
     extents (3,), its edges rounded with radius ``rounding`` (the outer size is kept)."""
     local = (points - center) @ rotation
-    q = np.abs(local) - (np.asarray(half_extents, float) - rounding)
-    outside = np.linalg.norm(np.maximum(q, 0.0), axis=1)
-    inside = np.minimum(q.max(axis=1), 0.0)
-    return outside + inside - rounding
+    return box_signed_distance_local(local, np.asarray(half_extents, float) - rounding) - rounding
 
 
 def smooth_union(d1: np.ndarray, d2: np.ndarray, k: float) -> np.ndarray:

@@ -8,6 +8,7 @@ from scipy.sparse.csgraph import connected_components
 from skimage.measure import marching_cubes
 
 from ..errors import InputError
+from .geometry import signed_volume
 from .topology import check_closed_manifold
 
 
@@ -36,12 +37,6 @@ def largest_component(vertices: np.ndarray, faces: np.ndarray):
     remap = np.full(n, -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
     return vertices[used], remap[faces]
-
-
-def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
-    """Volume enclosed by a closed mesh (m^3), positive when its faces wind outward."""
-    tri = vertices[faces]
-    return float(np.einsum("fi,fi->f", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0)
 
 
 def closed_surface_from_field(field: np.ndarray, origin: np.ndarray, spacing: float, *, what: str = "surface"):

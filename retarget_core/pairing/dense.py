@@ -36,6 +36,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..files import save_npz_atomic
+from ..mesh.geometry import signed_volume, vertex_normals
 from ..mesh.surface_points import SurfacePoints
 
 PAIRS_FORMAT = "handretarget.contact_pairs"
@@ -360,23 +361,6 @@ def load_contact_pairs(path) -> ContactPairs:
 # ------------------------------------------------------------------------------------------
 # pairing
 # ------------------------------------------------------------------------------------------
-def _signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
-    tri = vertices[faces]
-    return float(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0)
-
-
-def _area_weighted_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    tri = vertices[faces]
-    face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
-    normals = np.zeros_like(vertices)
-    for k in range(3):
-        normals[:, 0] += np.bincount(faces[:, k], face_n[:, 0], minlength=len(vertices))
-        normals[:, 1] += np.bincount(faces[:, k], face_n[:, 1], minlength=len(vertices))
-        normals[:, 2] += np.bincount(faces[:, k], face_n[:, 2], minlength=len(vertices))
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    return normals / np.maximum(length, 1e-300)
-
-
 def _hits(hand_vertices, hand_faces, tri, origins, directions):
     """Float64 hit points of rays (origins + t * directions) on the triangles ``tri``.
 
@@ -464,8 +448,8 @@ def pair_contacts(
     processed[todo] = True
 
     # Object side, once: outward vertex normals and each vertex as a surface point.
-    normals = _area_weighted_normals(obj_v, obj_f)
-    if _signed_volume(obj_v, obj_f) < 0:  # inward-wound mesh
+    normals = vertex_normals(obj_v, obj_f)
+    if signed_volume(obj_v, obj_f) < 0:  # inward-wound mesh
         normals = -normals
     has_contact = labels[todo].any(axis=1) if len(todo) else np.zeros(0, dtype=bool)
     used = np.nonzero(labels[todo[has_contact]].any(axis=0))[0] if has_contact.any() else np.zeros(0, np.int64)
@@ -492,7 +476,7 @@ def pair_contacts(
         if len(ids):
             hv = np.asarray(hand_all[f], dtype=np.float64)
             if hand_sign is None:  # outward-wound hand: +1; inward: -1
-                hand_sign = 1.0 if _signed_volume(hv, hand_faces) >= 0 else -1.0
+                hand_sign = 1.0 if signed_volume(hv, hand_faces) >= 0 else -1.0
             rot, trans = poses[f, :3, :3], poses[f, :3, 3]
             p = obj_v[ids] @ rot.T + trans
             d = normals[ids] @ rot.T

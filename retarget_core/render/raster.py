@@ -23,6 +23,7 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import InputError
+from ..mesh.geometry import face_normals, vertex_normals
 
 BACKGROUND = (255, 255, 255)
 SKIN = (226, 178, 146)
@@ -214,7 +215,7 @@ def render_meshes(
                              element="colors")
         keep = np.all(np.isfinite(verts[faces]).reshape(len(faces), -1), axis=1)
         faces = faces[keep]
-        fn, vn = _normals(verts, faces)
+        fn, vn = face_normals(verts, faces), vertex_normals(verts, faces)
         if smooth:
             cn = vn[faces]  # (F, 3, 3) per-corner
             cos_crease = math.cos(math.radians(crease_deg))
@@ -306,19 +307,6 @@ def _as_rgb01(colour) -> np.ndarray:
     if np.issubdtype(c.dtype, np.integer) or (c.size and float(np.nanmax(c)) > 1.0):
         return c.astype(np.float64) / 255.0
     return c.astype(np.float64)
-
-
-def _normals(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit face normals (F, 3) and area-weighted unit vertex normals (V, 3)."""
-    tri = verts[faces]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    length = np.linalg.norm(cross, axis=1, keepdims=True)
-    fn = cross / np.maximum(length, 1e-30)
-    vn = np.zeros_like(verts)
-    for corner in range(3):
-        np.add.at(vn, faces[:, corner], cross)
-    vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-30)
-    return fn, vn
 
 
 def _clip_near(view: np.ndarray, near: float):

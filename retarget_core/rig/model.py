@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
+from ..mesh.geometry import vertex_normals
 from ..mesh.topology import MeshTopologyReport, check_closed_manifold
 
 #: Named axes accepted in DOF specs (joint-local frame). A leading "-" flips the axis.
@@ -191,17 +192,6 @@ class SkinnedMesh:
                 source=source,
                 element=element + " skin weights",
             )
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) unit area-weighted vertex normals. vertices (V, 3), faces (F, 3)."""
-    tri = vertices[faces]
-    face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
-    normals = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(normals, faces[:, k], face_n)
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    return normals / np.maximum(length, 1e-300)
 
 
 @dataclass

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import igl
 import numpy as np
 
+from ..mesh.geometry import box_signed_distance, box_signed_distance_and_gradient
 from ..mesh.surface_points import SurfacePoints
 from ..rig.model import Rig
 from .config import RetargetConfig
@@ -51,24 +52,6 @@ class FrameData:
     object_points: np.ndarray
     object_normals: np.ndarray
     object_pose: np.ndarray | None = None
-
-
-def box_sdf(points: np.ndarray, pose: np.ndarray, half_extents: np.ndarray):
-    """Signed distance (N,) (negative inside) of a box and its gradient (N, 3), world frame."""
-    rot, origin = pose[:3, :3], pose[:3, 3]
-    local = (points - origin) @ rot
-    q = np.abs(local) - half_extents
-    outside = np.maximum(q, 0.0)
-    out_len = np.linalg.norm(outside, axis=1)
-    inside = np.minimum(q.max(axis=1), 0.0)
-    sdf = out_len + inside
-    grad_local = np.where(out_len[:, None] > 0, outside / np.maximum(out_len, 1e-300)[:, None], 0.0)
-    axis = np.argmax(q, axis=1)
-    in_rows = out_len <= 0
-    grad_local[in_rows] = 0.0
-    grad_local[in_rows, axis[in_rows]] = 1.0
-    grad_local *= np.sign(local) + (local == 0)
-    return sdf, grad_local @ rot.T
 
 
 class FrameObjective:
@@ -143,7 +126,7 @@ class FrameObjective:
         if self.table is None or self.object_tree is not None:
             return
         s = self.kin.points(q, self.all_samples)
-        near = box_sdf(s, *self.table)[0] < margin
+        near = box_signed_distance(s, *self.table) < margin
         self.sample_binding = (self.kin.bind(SurfacePoints.from_vertices(self.sample_vertices[near], self.rig.surface.faces))
                                if near.any() else None)
 
@@ -152,10 +135,10 @@ class FrameObjective:
         table (the focused objective then differs from the whole one)."""
         if self.table is None or self.sample_binding is self.all_samples:
             return False
-        inside_all = int((box_sdf(self.kin.points(q, self.all_samples), *self.table)[0] < 0).sum())
+        inside_all = int((box_signed_distance(self.kin.points(q, self.all_samples), *self.table) < 0).sum())
         if inside_all == 0 or self.sample_binding is None:
             return inside_all > 0
-        return inside_all > int((box_sdf(self.kin.points(q, self.sample_binding), *self.table)[0] < 0).sum())
+        return inside_all > int((box_signed_distance(self.kin.points(q, self.sample_binding), *self.table) < 0).sum())
 
     # ---- the terms -----------------------------------------------------------------------------
     def value_and_grad(self, q: np.ndarray, want_grad: bool = True):
@@ -195,7 +178,7 @@ class FrameObjective:
             s = kin.points(pose, self.sample_binding)
             cot = np.zeros_like(s)
             if self.table is not None and w.lambda_t > 0:
-                sdf, dsdf = box_sdf(s, *self.table)
+                sdf, dsdf = box_signed_distance_and_gradient(s, *self.table)
                 inside = sdf < 0
                 if inside.any():
                     value += w.lambda_t * float(-sdf[inside].sum() * MM)

@@ -14,9 +14,10 @@ import numpy as np
 
 from ..clip.format import Clip
 from ..errors import InputError
+from ..mesh.geometry import vertex_normals
 from ..mesh.surface_points import SurfacePoints
 from ..pairing.dense import ContactPairs
-from ..rig.model import Rig, vertex_normals
+from ..rig.model import Rig
 from ..transfer.annotations import Annotations, resolve_points
 from ..transfer.atlas import TransferredContacts
 

@@ -17,9 +17,9 @@ import potpourri3d as pp3d
 from scipy.spatial import cKDTree
 
 from ..errors import InputError
+from ..mesh.geometry import face_normals, vertex_normals
 from ..mesh.surface_points import SurfacePoints, barycentric_of
 from ..mesh.topology import check_closed_manifold
-from ..rig.model import vertex_normals
 
 #: Barycentric coordinates closer than this to 0 or 1 are snapped (a trace that ends on a
 #: vertex or edge comes back a few 1e-6 off, which sends the next trace to the wrong side).
@@ -56,15 +56,12 @@ class SurfaceGeometry:
         bx, by, bn = self._vhm.get_tangent_frames()
         self.basis_x, self.basis_y, self.basis_n = (np.asarray(a, dtype=np.float64) for a in (bx, by, bn))
         self.vertex_normals = vertex_normals(self.vertices, self.faces)
-        tri = self.vertices[self.faces]
-        fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        length = np.linalg.norm(fn, axis=1, keepdims=True)
-        # a zero-area face (robot wrappers have a few) gets a zero normal, not NaN
-        self.face_normals = np.divide(fn, length, out=np.zeros_like(fn), where=length > 0)
+        self.face_normals = face_normals(self.vertices, self.faces)  # zero (not NaN) on a robot wrapper's zero-area face
         self._aabb = igl.AABB()
         self._aabb.init(self.vertices, self.faces)
         self._component = None
         self._heat = None
+        tri = self.vertices[self.faces]
         self.edge_length = float(np.median(np.linalg.norm(tri[:, 0] - tri[:, 1], axis=1)))
 
     # ---- points -----------------------------------------------------------------------------
