@@ -16,15 +16,17 @@ from retarget_core.evaluate import (
     IntersectionResult,
     clip_intersections,
     contact_coverage,
-    contact_error,
+    contact_distance_per_frame,
+    contact_distances,
+    coverage_per_frame,
     dof_derivatives,
     dof_limit_violations,
     dof_smoothness,
     hand_object_intersection,
-    marker_error,
+    marker_error_per_frame,
+    median_per_frame_mm,
     points_inside_mesh,
     self_intersection,
-    summarize_clip,
     summarize_series,
     table_intersection,
 )
@@ -279,7 +281,7 @@ def test_open_hand_surface_makes_the_metrics_unavailable(hand_box, object_box):
         table_intersection(hv, hf, np.eye(3), TABLE_HALF)
 
 
-def test_clip_intersections_and_summary(hand_box, object_box):
+def test_clip_intersections_and_their_series_summary(hand_box, object_box):
     hv, hf = hand_box
     ov, of = object_box
     depths = [0.0055, -0.01, 0.0025]  # penetration per frame (negative: apart)
@@ -295,30 +297,99 @@ def test_clip_intersections_and_summary(hand_box, object_box):
     assert all(r.volume_m3 == 0 for r in out["self"])
     np.testing.assert_allclose([r.max_depth_m for r in out["table"]], [0.0035, 0.0, 0.0005], atol=1e-12)
     out["hand_object"].append(IntersectionResult(kind="hand_object", available=False, reason="hand surface is open"))
-    summary = summarize_clip(out, fps=30.0, extra={"contact_median_mm": np.array([1.0, np.nan])})
-    text = json.dumps(summary, allow_nan=False)
-    assert "hand surface is open" in text
-    ho = summary["metrics"]["hand_object"]
-    assert ho["percent_of_hand"]["frames"] == 4 and ho["percent_of_hand"]["finite_frames"] == 3
-    assert ho["percent_of_hand"]["max"] == pytest.approx(13.75) and ho["percent_of_hand"]["argmax_frame"] == 0
-    assert ho["unavailable_frames"] == 1
-    assert summary["contact_median_mm"] == [1.0, None]
+    # the report's per-kind series: NaN where the metric was unavailable
+    series = summarize_series([r.percent_of_hand if r.available else np.nan for r in out["hand_object"]])
+    assert series["frames"] == 4 and series["finite_frames"] == 3
+    assert series["max"] == pytest.approx(13.75) and series["argmax_frame"] == 0
+    assert series["min"] == 0.0 and series["median"] == pytest.approx(100 * 0.0025 / A)
+    json.dumps(series, allow_nan=False)
 
 
 # ------------------------------------------------------------------------------------------
 # contacts, markers, smoothness, limits
 # ------------------------------------------------------------------------------------------
-def test_contact_error_and_marker_error():
-    obj = np.zeros((4, 3))
-    target = np.array([[0.001, 0, 0], [0, 0.002, 0], [0, 0, 0.003], [0.006, 0.008, 0]])  # 1, 2, 3, 10 mm
-    e = contact_error(target, obj)
-    assert (e.n, e.median_mm, e.mean_mm, e.max_mm) == (4, pytest.approx(2.5), pytest.approx(4.0), pytest.approx(10.0))
-    m = marker_error(target, obj, mask=[True, True, True, False])
-    assert (m.n, m.median_mm, m.mean_mm, m.max_mm) == (3, pytest.approx(2.0), pytest.approx(2.0), pytest.approx(3.0))
-    empty = contact_error(np.zeros((0, 3)), np.zeros((0, 3)))
-    assert empty.n == 0 and empty.to_dict()["median_mm"] is None
-    with pytest.raises(InputError):
-        contact_error(target, obj[:3])
+def _translating_box_rig():
+    """A rig of one free root joint whose surface is a 2 cm cube at the origin: posed with
+    root translation t and rotation R (Euler XYZ), a vertex v lands at R v + t."""
+    from retarget_core.rig.model import Rig, SkinnedMesh, free_root
+
+    v, f = box_mesh((0.02, 0.02, 0.02), subdivisions=0)
+    joint, dofs = free_root()
+    surface = SkinnedMesh(v, f.astype(np.int64), np.zeros((len(v), 1), np.int64), np.ones((len(v), 1)))
+    return Rig("cube", [joint], dofs, surface)
+
+
+def _at_vertices(rig, ids):
+    """(faces, barycentric) of surface points lying exactly on the vertices ``ids``."""
+    from retarget_core.mesh.surface_points import SurfacePoints
+
+    points = SurfacePoints.from_vertices(np.asarray(ids), rig.surface.faces)
+    return points.faces, points.barycentric
+
+
+def test_contact_distance_and_marker_error_per_frame_by_hand():
+    from retarget_core.solve.targets import ContactTargets, MarkerTargets
+
+    rig = _translating_box_rig()
+    kin = rig.kinematics()
+    v = rig.surface.vertices
+    quarter = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # root_rz = pi/2
+    q = np.zeros((3, rig.n_dofs))
+    q[0, :3] = [0.1, 0.0, 0.0]
+    q[1, :3] = [0.0, 0.2, 0.0]
+    q[2, :3], q[2, 5] = [0.0, 0.0, 0.3], np.pi / 2
+
+    def posed(f, i):
+        return (quarter if f == 2 else np.eye(3)) @ v[i] + q[f, :3]
+
+    # frame 0: three contacts 1, 2 and 6 mm off; frame 1: none; frame 2 (turned): 3 and 5 mm
+    offsets = np.array([0, 3, 3, 5])
+    ids = np.array([0, 3, 6, 1, 7])
+    frame_of = [0, 0, 0, 2, 2]
+    off = np.array([[0.001, 0, 0], [0, 0.002, 0], [0, 0, -0.006], [0.003, 0, 0], [0, 0.003, 0.004]])
+    surface = np.array([posed(f, i) for f, i in zip(frame_of, ids)]) + off
+    normals = np.tile([0.0, 0.0, 1.0], (5, 1))
+    gap = np.array([0.0, 0.0, 0.0, 0.01, 0.0])  # a kept source gap moves the target, not the error
+    faces, bary = _at_vertices(rig, ids)
+    contacts = ContactTargets(offsets, faces, bary, surface + gap[:, None] * normals, normals, gap)
+
+    distances = contact_distances(kin, q, contacts)
+    np.testing.assert_allclose(distances, [0.001, 0.002, 0.006, 0.003, 0.005], rtol=1e-9)
+    median, count = contact_distance_per_frame(kin, q, contacts)
+    np.testing.assert_array_equal(count, [3, 0, 2])
+    assert median[0] == pytest.approx(2.0, rel=1e-9) and median[2] == pytest.approx(4.0, rel=1e-9)
+    assert math.isnan(median[1])
+    again, _ = median_per_frame_mm(distances, offsets)
+    np.testing.assert_array_equal(again, median)
+
+    # markers: A (one pair, on vertex 2) and B (two pairs, vertex 5), so B's pairs weigh 1/2 each
+    m_faces, m_bary = _at_vertices(rig, [2, 5])
+    pair_target = np.array([0, 1, 1])
+    source = np.array([[posed(f, i) for i in (2, 5, 5)] for f in range(3)])
+    source[:, 0] += [0.004, 0.0, 0.0]  # A 4 mm off in every frame
+    source[:, 1] += [0.0, 0.0, 0.002]  # B's pairs 2 mm and 6 mm off ...
+    source[:, 2] += [0.0, -0.006, 0.0]
+    source[1, 1:] = posed(1, 5)  # ... except in frame 1, where B sits on its target
+    markers = MarkerTargets(m_faces, m_bary, pair_target, np.array([1.0, 0.5, 0.5]), source, ["A", "B", "B"])
+    error = marker_error_per_frame(kin, q, markers)
+    # (1 * 4 + 0.5 * 2 + 0.5 * 6) / 2 mm, and (1 * 4 + 0) / 2 mm in frame 1
+    np.testing.assert_allclose(error, [4.0, 2.0, 4.0], rtol=1e-9)
+
+    none = MarkerTargets(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0),
+                         np.zeros((3, 0, 3)), [])
+    assert np.isnan(marker_error_per_frame(kin, q, none)).all()
+    with pytest.raises(InputError, match="3 frames, q has 2"):
+        contact_distances(kin, q[:2], contacts)
+
+
+def test_coverage_per_frame_counts_dropped_source_contacts_as_not_realised():
+    offsets = np.array([0, 3, 3, 4])
+    distances = np.array([0.001, 0.004, 0.006, 0.002])
+    share = coverage_per_frame(distances, offsets, source_count=np.array([4, 2, 1]))
+    # frame 0: 1 and 4 mm realised of 4 source contacts (one dropped); frame 1: nothing transferred
+    np.testing.assert_allclose(share[[0, 2]], [0.5, 1.0])
+    assert math.isnan(share[1])
+    np.testing.assert_allclose(coverage_per_frame(distances, offsets)[[0, 2]], [2 / 3, 1.0])
 
 
 def test_contact_coverage():
@@ -383,5 +454,6 @@ def test_summarize_series_handles_nan():
     s = summarize_series(np.array([1.0, np.nan, 3.0, 2.0]))
     assert s["frames"] == 4 and s["finite_frames"] == 3
     assert s["max"] == 3.0 and s["argmax_frame"] == 2 and s["median"] == 2.0
-    assert summarize_series(np.array([np.nan]))["mean"] is None
-    json.dumps(summarize_clip({"coverage": [0.5, np.nan]}), allow_nan=False)
+    empty = summarize_series(np.array([np.nan]))
+    assert empty["mean"] is None and empty["argmax_frame"] is None and empty["finite_frames"] == 0
+    assert json.loads(json.dumps(summarize_series([0.5, np.nan]), allow_nan=False))["mean"] == 0.5

@@ -1,7 +1,7 @@
 """Evaluation of a retargeted motion: the paper's intersection metrics (hand-object, self and
 table, as convex-hull volumes of penetrating vertex clusters relative to the hand's volume)
 and per-frame / per-clip quality metrics (contact error and coverage, marker error,
-smoothness, DOF limit violations, JSON summaries)."""
+smoothness, DOF limit violations, series summaries)."""
 
 from .intersection import (
     KINDS,
@@ -16,19 +16,17 @@ from .metrics import (
     DEFAULT_COVERAGE_THRESHOLD,
     DEFAULT_LIMIT_TOLERANCE,
     ContactCoverage,
-    DistanceSummary,
     LimitViolations,
     Smoothness,
     contact_coverage,
-    contact_error,
+    contact_distance_per_frame,
+    contact_distances,
+    coverage_per_frame,
     dof_derivatives,
     dof_limit_violations,
     dof_smoothness,
-    intersection_series,
-    marker_error,
-    point_distances,
-    summarize_clip,
-    summarize_distances,
+    marker_error_per_frame,
+    median_per_frame_mm,
     summarize_series,
 )
 
@@ -43,18 +41,16 @@ __all__ = [
     "DEFAULT_COVERAGE_THRESHOLD",
     "DEFAULT_LIMIT_TOLERANCE",
     "ContactCoverage",
-    "DistanceSummary",
     "LimitViolations",
     "Smoothness",
     "contact_coverage",
-    "contact_error",
+    "contact_distance_per_frame",
+    "contact_distances",
+    "coverage_per_frame",
     "dof_derivatives",
     "dof_limit_violations",
     "dof_smoothness",
-    "intersection_series",
-    "marker_error",
-    "point_distances",
-    "summarize_clip",
-    "summarize_distances",
+    "marker_error_per_frame",
+    "median_per_frame_mm",
     "summarize_series",
 ]

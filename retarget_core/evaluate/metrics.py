@@ -1,5 +1,8 @@
 """Per-frame and per-clip quality metrics of a retargeted motion: contact error and coverage,
-marker error, smoothness per DOF, DOF limit violations, and a JSON summary of a clip.
+marker error, smoothness per DOF, DOF limit violations, and the summary of a per-frame series.
+The retarget's own figures (result.json) and ``handretarget evaluate`` both compute the contact
+error with :func:`contact_distance_per_frame` (or its parts :func:`contact_distances` and
+:func:`median_per_frame_mm`) and the marker error with :func:`marker_error_per_frame`.
 
 Inputs in SI units (metres, radians, seconds); reports in the units people read: millimetres
 for contact and marker distances, degrees (rotation DOFs) or centimetres (translation DOFs)
@@ -11,12 +14,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Mapping, Sequence
+from typing import Sequence
 
 import numpy as np
 
 from ..errors import InputError
 from ..jsonio import to_jsonable  # also re-exported here for server/job_process.py (until it imports jsonio)
+from ..mesh.surface_points import SurfacePoints
 
 #: A source contact counts as realised on the target within this distance (metres).
 DEFAULT_COVERAGE_THRESHOLD = 0.005
@@ -24,14 +28,8 @@ DEFAULT_COVERAGE_THRESHOLD = 0.005
 DEFAULT_LIMIT_TOLERANCE = 1e-6
 
 _RAD_TO_DEG = 180.0 / math.pi
+_MM = 1000.0
 _M_TO_CM = 100.0
-
-
-def _points(a, element: str) -> np.ndarray:
-    a = np.asarray(a, dtype=np.float64)
-    if a.ndim != 2 or a.shape[1] != 3:
-        raise InputError(f"must be an (N, 3) array, got shape {a.shape}", element=element)
-    return a
 
 
 def _mask(mask, n: int, element: str) -> np.ndarray:
@@ -46,55 +44,71 @@ def _mask(mask, n: int, element: str) -> np.ndarray:
 # ------------------------------------------------------------------------------------------
 # distances: contacts and markers
 # ------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class DistanceSummary:
-    """Distances of one frame summarised in millimetres over the ``n`` finite values
-    (NaN when there are none)."""
+def contact_distances(kinematics, q: np.ndarray, contacts) -> np.ndarray:
+    """Per contact (N,) metres: the distance between each target-hand contact point, posed at
+    its frame's DOF values, and its point on the object's surface.
 
-    n: int
-    median_mm: float
-    mean_mm: float
-    max_mm: float
-
-    def to_dict(self) -> dict:
-        return to_jsonable(asdict(self))
-
-
-def summarize_distances(distances: np.ndarray, mask: np.ndarray | None = None) -> DistanceSummary:
-    """Median, mean and max (mm) of distances (N,) metres; ``mask`` (N,) bool selects which
-    to use (default all); NaN distances are left out."""
-    d = np.asarray(distances, dtype=np.float64).reshape(-1)
-    keep = _mask(mask, len(d), "mask") & np.isfinite(d)
-    d = d[keep] * 1000.0
-    if len(d) == 0:
-        return DistanceSummary(0, math.nan, math.nan, math.nan)
-    return DistanceSummary(int(len(d)), float(np.median(d)), float(d.mean()), float(d.max()))
-
-
-def point_distances(points_a: np.ndarray, points_b: np.ndarray) -> np.ndarray:
-    """Euclidean distances (N,) metres between paired points (N, 3) and (N, 3)."""
-    a = _points(points_a, "points_a")
-    b = _points(points_b, "points_b")
-    if a.shape != b.shape:
-        raise InputError(f"paired points differ in shape: {a.shape} vs {b.shape}", element="points_b")
-    return np.linalg.norm(a - b, axis=1)
+    kinematics: the target rig's :class:`~retarget_core.rig.kinematics.Kinematics`; q (T, D)
+    DOF values per frame (radians / metres); contacts: the contact pairs of every frame, split
+    by ``frame_offsets`` (T+1,) (a :class:`~retarget_core.solve.targets.ContactTargets`, or any
+    object with ``frame_offsets``, ``target_faces`` (N,), ``target_barycentric`` (N, 3) and
+    ``surface_points(f)`` (N_f, 3) world metres). Rows follow the contacts' order."""
+    q = np.asarray(q, dtype=np.float64)
+    offsets = np.asarray(contacts.frame_offsets, dtype=np.int64)
+    if len(offsets) != len(q) + 1:
+        raise InputError(f"contacts are split into {len(offsets) - 1} frames, q has {len(q)}",
+                         element="frame_offsets")
+    distances = np.full(int(offsets[-1]), np.nan)
+    for f in range(len(q)):
+        sl = slice(int(offsets[f]), int(offsets[f + 1]))
+        if sl.stop > sl.start:
+            points = SurfacePoints(contacts.target_faces[sl], contacts.target_barycentric[sl])
+            posed = kinematics.points(kinematics.pose(q[f]), kinematics.bind(points))
+            distances[sl] = np.linalg.norm(posed - contacts.surface_points(f), axis=1)
+    return distances
 
 
-def contact_error(
-    target_points: np.ndarray, object_points: np.ndarray, mask: np.ndarray | None = None
-) -> DistanceSummary:
-    """Contact error of one frame: distances between the target hand's contact points (N, 3)
-    and their object points (N, 3), metres in, median / mean / max in mm out. ``mask`` (N,)
-    bool selects the contacts that exist on the target (e.g. the transferred ones)."""
-    return summarize_distances(point_distances(target_points, object_points), mask)
+def median_per_frame_mm(distances: np.ndarray, frame_offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The contact error: per frame, the median (mm) of that frame's distances (N,) metres
+    (rows ``frame_offsets[f]:frame_offsets[f + 1]``), NaN on a frame without any; and the
+    count (T,) int64 of distances per frame."""
+    offsets = np.asarray(frame_offsets, dtype=np.int64)
+    count = np.diff(offsets)
+    median = np.full(len(count), np.nan)
+    for f in np.flatnonzero(count):
+        median[f] = _MM * np.median(distances[offsets[f]:offsets[f + 1]])
+    return median, count
 
 
-def marker_error(
-    source_points: np.ndarray, target_points: np.ndarray, mask: np.ndarray | None = None
-) -> DistanceSummary:
-    """Marker error of one frame: distances between paired source and target marker points
-    (M, 3) metres; median / mean / max in mm. ``mask`` (M,) bool selects markers."""
-    return summarize_distances(point_distances(source_points, target_points), mask)
+def contact_distance_per_frame(kinematics, q: np.ndarray, contacts) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame at the poses q (T, D): the median distance (T,) mm between the posed target
+    contact points and their object-surface points (NaN on frames without contacts) and the
+    contact count (T,) int64. Inputs as :func:`contact_distances`."""
+    return median_per_frame_mm(contact_distances(kinematics, q, contacts), contacts.frame_offsets)
+
+
+def marker_error_per_frame(kinematics, q: np.ndarray, markers) -> np.ndarray:
+    """Per frame at the poses q (T, D): the marker error (T,) mm, the pair-weighted mean
+    distance between the posed target marker points and the source markers (weights
+    normalised to sum 1, so a marker of K pairs counts once); NaN for every frame when there
+    are no marker pairs.
+
+    markers: a :class:`~retarget_core.solve.targets.MarkerTargets` (or any object with
+    ``target_faces`` (Mt,), ``target_barycentric`` (Mt, 3), ``pair_target`` (Np,) into them,
+    ``pair_weight`` (Np,) and ``source_positions`` (T, Np, 3) world metres)."""
+    q = np.asarray(q, dtype=np.float64)
+    marker = np.full(len(q), np.nan)
+    if not len(markers.pair_target):
+        return marker
+    if len(markers.source_positions) != len(q):
+        raise InputError(f"source markers have {len(markers.source_positions)} frames, q has {len(q)}",
+                         element="source_positions")
+    binding = kinematics.bind(SurfacePoints(markers.target_faces, markers.target_barycentric))
+    weight = markers.pair_weight / markers.pair_weight.sum()
+    for f in range(len(q)):
+        x = kinematics.points(kinematics.pose(q[f]), binding)[markers.pair_target]
+        marker[f] = _MM * float(weight @ np.linalg.norm(x - markers.source_positions[f], axis=1))
+    return marker
 
 
 @dataclass(frozen=True)
@@ -140,6 +154,24 @@ def contact_coverage(
         share=float(realised.sum() / n) if n else math.nan,
         threshold_m=float(threshold_m),
     )
+
+
+def coverage_per_frame(distances: np.ndarray, frame_offsets: np.ndarray, source_count: np.ndarray | None = None,
+                       threshold_m: float = DEFAULT_COVERAGE_THRESHOLD) -> np.ndarray:
+    """Per frame (T,): :func:`contact_coverage` of the frame. distances (N,) metres of the
+    transferred contacts, split by ``frame_offsets`` (T+1,) (as :func:`contact_distances`
+    gives them); source_count (T,): the frame's source contacts before the transfer (default:
+    as many as were transferred); the ones the transfer dropped count as not realised. NaN on
+    a frame without a transferred contact."""
+    offsets = np.asarray(frame_offsets, dtype=np.int64)
+    count = np.diff(offsets)
+    share = np.full(len(count), np.nan)
+    for f in np.flatnonzero(count):
+        d = np.asarray(distances[offsets[f]:offsets[f + 1]], dtype=np.float64)
+        total = int(source_count[f]) if source_count is not None else len(d)
+        every = np.concatenate([d, np.full(max(total - len(d), 0), np.nan)])
+        share[f] = contact_coverage(every, np.arange(len(every)) < len(d), threshold_m).share
+    return share
 
 
 # ------------------------------------------------------------------------------------------
@@ -335,43 +367,3 @@ def summarize_series(values: np.ndarray) -> dict:
     else:
         out.update(mean=None, median=None, p95=None, min=None, max=None, argmax_frame=None)
     return out
-
-
-def intersection_series(results) -> dict[str, np.ndarray]:
-    """Per-frame arrays (T,) from a list of :class:`~.intersection.IntersectionResult`:
-    percent_of_hand, volume_m3, max_depth_m, n_vertices and n_clusters (NaN where the metric
-    was unavailable)."""
-    keys = ("percent_of_hand", "volume_m3", "max_depth_m", "n_vertices", "n_clusters")
-    out = {k: np.full(len(results), math.nan) for k in keys}
-    for i, r in enumerate(results):
-        if r.available:
-            for k in keys:
-                out[k][i] = float(getattr(r, k))
-    return out
-
-
-def summarize_clip(series: Mapping[str, object], *, fps: float | None = None, extra: Mapping | None = None) -> dict:
-    """Per-clip summary, JSON-serialisable (NaN -> None).
-
-    series: name -> per-frame values (T,) (e.g. "contact_median_mm", "coverage",
-    "marker_mean_mm") or a list of IntersectionResult (summarised per field, with the
-    reasons of unavailable frames); fps: stored when given; extra: added as is (converted).
-    """
-    out: dict = {}
-    if fps is not None:
-        out["fps"] = float(fps)
-    metrics: dict = {}
-    for name, values in series.items():
-        if isinstance(values, (list, tuple)) and values and hasattr(values[0], "available"):
-            per_field = intersection_series(values)
-            entry = {k: summarize_series(v) for k, v in per_field.items()}
-            reasons = sorted({r.reason for r in values if not r.available})
-            entry["unavailable_frames"] = int(sum(not r.available for r in values))
-            entry["unavailable_reasons"] = reasons
-            metrics[name] = entry
-        else:
-            metrics[name] = summarize_series(np.asarray(values, dtype=np.float64))
-    out["metrics"] = metrics
-    if extra:
-        out.update(to_jsonable(dict(extra)))
-    return to_jsonable(out)

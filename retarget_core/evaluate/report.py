@@ -86,6 +86,18 @@ def load_output(folder):
     return result, rig, scene
 
 
+def scene_contacts(scene: Scene):
+    """The scene's contact targets as a :class:`~retarget_core.solve.targets.ContactTargets`
+    (object points already on the surface: no gap), None when scene.npz has none."""
+    from ..solve.targets import ContactTargets
+
+    if scene.contact_frame_offsets is None:
+        return None
+    points = np.asarray(scene.contact_surface_points, dtype=np.float64)
+    return ContactTargets(scene.contact_frame_offsets, scene.contact_target_faces, scene.contact_target_barycentric,
+                          points, np.zeros_like(points), np.zeros(len(points)))
+
+
 def _scene_extras(path) -> dict:
     with np.load(path, allow_pickle=False) as z:
         return {k: z[k] for k in ("source_frames", "source_hand_vertices", "source_hand_faces") if k in z.files}
@@ -96,10 +108,16 @@ def evaluate_output(folder, *, stride: int = 1, self_intersection_stride: int | 
     for metrics.json). ``stride``: measure intersections every stride-th frame (the others are
     None); self intersection, the costliest, every ``self_intersection_stride``-th (default:
     ``stride``). Contact, marker, smoothness and limit figures cover every frame."""
-    from ..mesh.surface_points import SurfacePoints
     from ..mesh.geometry import signed_volume
     from .intersection import hand_object_intersection, self_intersection, table_intersection
-    from .metrics import contact_coverage, dof_limit_violations, dof_smoothness, summarize_series
+    from .metrics import (
+        contact_distances,
+        coverage_per_frame,
+        dof_limit_violations,
+        dof_smoothness,
+        median_per_frame_mm,
+        summarize_series,
+    )
 
     result, rig, scene = load_output(folder)
     kin = rig.kinematics()
@@ -114,6 +132,12 @@ def evaluate_output(folder, *, stride: int = 1, self_intersection_stride: int | 
     reasons = {}
     contact_mm = np.full(n, np.nan)
     coverage = np.full(n, np.nan)
+    contacts = scene_contacts(scene)
+    if contacts is not None:
+        distances = contact_distances(kin, q, contacts)
+        contact_mm, _ = median_per_frame_mm(distances, contacts.frame_offsets)
+        # the source contacts the transfer dropped count as not realised
+        coverage = coverage_per_frame(distances, contacts.frame_offsets, scene.source_contact_count, COVERAGE_MM / MM)
 
     for f in range(n):
         verts = None
@@ -131,17 +155,6 @@ def evaluate_output(folder, *, stride: int = 1, self_intersection_stride: int | 
                     percent[kind][f] = r.percent_of_hand
                 else:
                     reasons[kind] = r.reason
-        if scene.contact_frame_offsets is not None:
-            sl = slice(int(scene.contact_frame_offsets[f]), int(scene.contact_frame_offsets[f + 1]))
-            if sl.stop > sl.start:
-                points = SurfacePoints(scene.contact_target_faces[sl], scene.contact_target_barycentric[sl])
-                d = np.linalg.norm(kin.points(q[f], kin.bind(points)) - scene.contact_surface_points[sl], axis=1)
-                contact_mm[f] = float(np.median(d)) * MM
-                total = int(scene.source_contact_count[f]) if scene.source_contact_count is not None else len(d)
-                # the source contacts the transfer dropped count as not realised
-                every = np.concatenate([d, np.full(max(total - len(d), 0), np.nan)])
-                transferred = np.arange(len(every)) < len(d)
-                coverage[f] = contact_coverage(every, transferred, COVERAGE_MM / MM).share
     smooth = dof_smoothness(q, result.fps, list(result.dof_kinds))
     limits = dof_limit_violations(q, result.lower, result.upper)
     per_frame = {"intersection_percent": {k: percent[k] for k in kinds}, "contact_error_median_mm": contact_mm,
