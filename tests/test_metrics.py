@@ -11,7 +11,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from retarget_core.errors import InputError
-from retarget_core.mesh.geometry import box_signed_distance, signed_volume
+from retarget_core.mesh.geometry import SURFACE_TOLERANCE_M, box_signed_distance, signed_volume
 from retarget_core.evaluate import (
     IntersectionResult,
     clip_intersections,
@@ -251,6 +251,30 @@ def test_demo_hand_on_the_table(source_hand):
     assert table_intersection(v, faces, table_pose_with_top_at(low), TABLE_HALF).n_vertices == 0
     below = np.array([[0.0, 0.1, low - 0.001]])
     assert box_signed_distance(below, table_pose_with_top_at(low), TABLE_HALF)[0] == pytest.approx(-0.001)
+
+
+@pytest.mark.parametrize("below_top, inside", [(0.0, False), (1e-12, False), (1e-6, True)],
+                         ids=["on the top", "1e-12 m in", "1e-6 m in"])
+def test_table_inside_only_deeper_than_the_stated_tolerance(below_top, inside):
+    """A vertex counts as in the table only deeper than SURFACE_TOLERANCE_M (1e-9 m): exactly on
+    the top or 1e-12 m into it is outside, 1e-6 m into it is inside; in a turned frame too."""
+    assert SURFACE_TOLERANCE_M == 1e-9
+    hv, hf = box_mesh((0.01, 0.01, 0.01), subdivisions=0)  # 8 corners, 4 of them at the bottom
+    hv = hv + [0.0, 0.1, 0.005 - below_top]  # bottom face below_top under the top at z = 0
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_rotvec([0.4, 1.1, -0.2]).as_matrix()
+    for frame in (np.eye(4), turn):
+        r = table_intersection(transform(hv, frame), hf, frame @ table_pose_with_top_at(0.0), TABLE_HALF)
+        assert r.available and r.n_vertices == (4 if inside else 0)
+        if inside:
+            assert r.max_depth_m == pytest.approx(below_top, rel=1e-3)
+
+
+@pytest.mark.parametrize("beyond, realised", [(0.0, True), (1e-12, True), (1e-6, False)],
+                         ids=["at the threshold", "1e-12 m beyond", "1e-6 m beyond"])
+def test_contact_realised_up_to_the_stated_tolerance_beyond_the_threshold(beyond, realised):
+    c = contact_coverage(np.array([0.005 + beyond, 0.001]), threshold_m=0.005)
+    assert c.n_realised == (2 if realised else 1)
 
 
 # ------------------------------------------------------------------------------------------

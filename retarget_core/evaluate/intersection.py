@@ -19,7 +19,9 @@ Choices made here (the paper leaves them open):
   sum is the winding number of the hand surface at the start point. It is 0 for every vertex
   of a hand whose surface does not pass through itself, and 1 for a finger vertex pushed into
   the palm (and for a palm vertex inside the finger). Table: the box's signed distance is
-  exact, so the test is analytic (``sdf < 0``). Both ray tests gave exactly the vertex sets of
+  exact, so the test is analytic: inside when ``sdf < -SURFACE_TOLERANCE_M`` (1e-9 m, see
+  :data:`retarget_core.mesh.geometry.SURFACE_TOLERANCE_M`), so a vertex lying on the table top
+  up to round-off is not in the table. Both ray tests gave exactly the vertex sets of
   libigl's generalized winding number (> 0.5) on the demo hand (rest, fingers bent through
   the palm) and on every 10th frame of a demo clip.
 * **Volume of a cluster.** The hull is taken over the cluster's penetrating vertices *and*
@@ -65,6 +67,7 @@ from scipy.spatial import ConvexHull, QhullError
 
 from ..errors import InputError
 from ..mesh.geometry import (
+    SURFACE_TOLERANCE_M,
     box_local,
     box_signed_distance_local,
     face_normals,
@@ -509,7 +512,8 @@ def table_intersection(
 
     hand_vertices (V, 3) world metres, hand_faces (F, 3) int (a closed manifold);
     table_pose (4, 4) world-from-box (rigid), the box centred on its frame's origin;
-    table_half_extents (3,) metres. Inside test and crossings are analytic (exact box SDF).
+    table_half_extents (3,) metres. Inside test and crossings are analytic (exact box SDF); a
+    vertex is inside only deeper than ``SURFACE_TOLERANCE_M`` (1e-9 m) below the surface.
     """
     kind = "table"
     pose, he = _check_box(table_pose, table_half_extents)
@@ -519,7 +523,7 @@ def table_intersection(
     v, topo, _, hand_volume = hand
     local = box_local(v, pose)  # rigid: distances and volumes are the same in the box frame
     sdf = box_signed_distance_local(local, he)
-    inside = (sdf < 0) & topo.referenced
+    inside = (sdf < -SURFACE_TOLERANCE_M) & topo.referenced  # on the surface (within 1 nm) is outside
     pen, labels, n_clusters = _clusters(topo.edges, inside)
     if n_clusters == 0:
         return _result(kind, hand_volume, pen, 0, np.zeros(0), 0.0)

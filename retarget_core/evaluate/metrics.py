@@ -20,9 +20,11 @@ import numpy as np
 
 from ..errors import InputError
 from ..jsonio import to_jsonable  # also re-exported here for server/job_process.py (until it imports jsonio)
+from ..mesh.geometry import SURFACE_TOLERANCE_M
 from ..mesh.surface_points import SurfacePoints
 
-#: A source contact counts as realised on the target within this distance (metres).
+#: A source contact counts as realised on the target within this distance (metres; up to
+#: ``SURFACE_TOLERANCE_M`` beyond it, so round-off never decides).
 DEFAULT_COVERAGE_THRESHOLD = 0.005
 #: DOF values beyond a limit by more than this (radians or metres) count as violations.
 DEFAULT_LIMIT_TOLERANCE = 1e-6
@@ -139,13 +141,15 @@ def contact_coverage(
     distances (N,) metres: per source contact, the distance between its target-hand point and
     its object point (any value, NaN included, for contacts that were not transferred);
     transferred (N,) bool: which source contacts exist on the target (default all). A dropped
-    contact counts as not realised; a contact is realised when its distance <= threshold_m.
+    contact counts as not realised; a contact is realised when its distance is at most
+    threshold_m + ``SURFACE_TOLERANCE_M`` (1e-9 m: a distance at the threshold up to round-off
+    counts as within it).
     """
     d = np.asarray(distances, dtype=np.float64).reshape(-1)
     t = _mask(transferred, len(d), "transferred")
     if not (threshold_m >= 0):
         raise InputError(f"must be >= 0, got {threshold_m!r}", element="threshold_m")
-    realised = t & np.isfinite(d) & (d <= threshold_m)
+    realised = t & np.isfinite(d) & (d <= threshold_m + SURFACE_TOLERANCE_M)
     n = len(d)
     return ContactCoverage(
         n_source=int(n),

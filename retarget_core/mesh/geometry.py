@@ -13,6 +13,15 @@ from __future__ import annotations
 
 import numpy as np
 
+#: Distance (m) within which a point counts as lying *on* a surface in the evaluation's
+#: predicates (``retarget_core.evaluate``): a hand vertex is inside the table (a box) only
+#: deeper than this, and a contact is realised within a distance threshold up to this much
+#: beyond it. One nanometre: far below any capture or modelling accuracy, far above the
+#: round-off of float64 coordinates in metres (about 1e-17 m near 0.1 m), so a vertex placed
+#: exactly on a surface is never counted as in it because of the arithmetic of its pose. The
+#: solver's own terms do not use it (their numerics are unchanged).
+SURFACE_TOLERANCE_M = 1e-9
+
 
 # ---- triangle meshes ---------------------------------------------------------------------------
 def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
