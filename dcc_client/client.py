@@ -93,12 +93,16 @@ class RetargetClient:
         return self._json("POST", "/v1/annotations/propose", {"target_rig": target_rig, "source_rig": source_rig})
 
     def submit(self, *, clip: str, rig: str, annotations: str, source_rig: str | None = None, preset: str = "default",
-               overrides: dict | None = None, evaluate: bool = True, idempotency_key: str | None = None) -> dict:
-        """Queue a job; with ``idempotency_key`` a repeated call returns the same job."""
+               overrides: dict | None = None, evaluate: bool = True, frames: tuple[int, int] | None = None,
+               idempotency_key: str | None = None) -> dict:
+        """Queue a job; ``frames``: (start, end) of the clip to retarget, end excluded (None: all
+        of it). With ``idempotency_key`` a repeated call returns the same job."""
         doc = {"clip": clip, "rig": rig, "annotations": annotations, "preset": preset,
                "overrides": overrides or {}, "evaluate": evaluate}
         if source_rig:
             doc["source_rig"] = source_rig
+        if frames is not None:
+            doc["frames"] = list(frames)
         headers = {"Idempotency-Key": idempotency_key} if idempotency_key else None
         return self._json("POST", "/v1/jobs", doc, headers=headers)
 

@@ -17,8 +17,9 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
 from .routers import assets, jobs, ops
 from .runner import JobRunner
+from .schemas import JobState
 from .settings import Settings
-from .storage import JOB_STATES, Store
+from .storage import Store
 
 API_VERSION = "1"
 log = logging.getLogger("server.http")
@@ -56,8 +57,8 @@ class Metrics:
                                  registry=self.registry,
                                  buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10))
         jobs_gauge = Gauge("handretarget_jobs", "jobs in the store by state", ["state"], registry=self.registry)
-        for state in JOB_STATES:  # read from the store at scrape time
-            jobs_gauge.labels(state).set_function(lambda s=state: store.state_counts()[s])
+        for state in JobState:  # read from the store at scrape time
+            jobs_gauge.labels(state.value).set_function(lambda s=state.value: store.state_counts()[s])
 
 
 def _readable(exc: RequestValidationError) -> str:

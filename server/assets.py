@@ -12,10 +12,13 @@ import shutil
 import stat
 import zipfile
 from pathlib import Path, PurePosixPath
+from typing import get_args
 
 from retarget_core.errors import InputError
 
-KINDS = ("rig", "annotations", "clip", "file")
+from .schemas import AssetKind
+
+KINDS = get_args(AssetKind)
 FILE_SUFFIXES = (".npz", ".pkl", ".ply", ".obj", ".stl", ".off")
 ROBOT_SUFFIXES = (".urdf", ".xml", ".mjcf")
 MAX_BUNDLE_MEMBERS = 2000

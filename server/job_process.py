@@ -1,10 +1,17 @@
-"""One job, in its own process: ``python -m server.job_process --data-dir D --job ID``.
+"""One job, in its own process: ``python -m server.job_process --job ID --settings JSON``.
 
-Reads the job's request and assets from the store, runs the core's :func:`retarget` (frames
-in a local process pool, or on Dask), writes the artifacts into a scratch folder, renames it
-into place whole, and only then marks the job ``succeeded``. Progress goes to the store a few
-times a second. When the service that started it is gone (killed), the process stops at its
-next progress report and the restarted service re-runs the job.
+Reads the job's request and assets from the store, builds the run with the core's
+:func:`~retarget_core.inputs.load_inputs` (which also enforces which files a job may load: a
+clip may only name a demo source hand), :func:`~retarget_core.solve.config.load_config` (the
+request's preset and overrides, as sent) and an :class:`~retarget_core.execute.Executor` (the
+service's settings), runs :func:`~retarget_core.pipeline.retarget`, writes the artifacts into a
+scratch folder, renames it into place whole, and only then marks the job ``succeeded``.
+Progress goes to the store a few times a second. When the service that started it is gone
+(killed), the process stops at its next progress report and the restarted service re-runs it.
+
+Bad input (the core's :class:`~retarget_core.errors.RetargetError`) fails the job with its
+message; any other exception is a bug: the job fails as "internal error (...)" and the
+traceback goes to the job's log.
 """
 
 from __future__ import annotations
@@ -15,13 +22,19 @@ import os
 import shutil
 import sys
 import time
-import traceback
+from pathlib import Path
 
 from retarget_core.errors import RetargetError
 
+from .schemas import JobState
+from .settings import Settings
 from .storage import Store
 
 log = logging.getLogger("server.job")
+RUNNING = (JobState.RUNNING,)
+#: request field -> (asset kind, name of the input in the core's provenance)
+INPUT_ASSETS = {"clip": ("clip", "clip"), "rig": ("rig", "target_rig"), "annotations": ("annotations", "annotations"),
+                "source_rig": ("rig", "source_rig")}
 
 
 class Orphaned(SystemExit):
@@ -48,73 +61,87 @@ class _Progress:
         fields = {"stage": stage, "progress": round(done / total, 4) if total else 0.0}
         if stage == "full pass":
             fields.update(frames_done=int(done), frames_total=int(total))
-        self.store.update_job(self.job_id, only_if_state=("running",), **fields)
+        self.store.update_job(self.job_id, only_if_state=RUNNING, **fields)
 
 
-def run_job(store: Store, job_id: str, *, frame_workers: int = 1, dask_scheduler: str = "",
-            parent: int | None = None, evaluate_stride: int = 4) -> str:
+def run_job(store: Store, job_id: str, settings: Settings, *, parent: int | None = None) -> JobState:
     """Run job ``job_id`` (state ``running``) to its final state; returns that state."""
-    from retarget_core.clip import load_clip
-    from retarget_core.evaluate.metrics import to_jsonable
-    from retarget_core.retarget import retarget
-    from retarget_core.rig.io import load_rig, resolve_rig
+    from retarget_core.execute import Executor
+    from retarget_core.inputs import load_inputs
+    from retarget_core.jsonio import to_jsonable
+    from retarget_core.pipeline import retarget
     from retarget_core.solve.config import load_config
-    from retarget_core.transfer.annotations import load_annotations
 
     job = store.job(job_id)
-    request, owner = job["request"], job["owner"]
+    request = job.request
     progress = _Progress(store, job_id, parent)
     out = store.new_tmp(".out")
-    try:
-        def asset_path(field, kind):
-            asset = store.asset(owner, request[field], kind)
-            if asset is None:  # checked at submission; only a damaged store gets here
-                raise RetargetError(f"{field}: asset {request[field]} is gone from the store")
-            return store.asset_path(asset)
+    paths: dict[str, Path] = {}  # request field -> the asset's file
 
-        overrides = dict(request.get("overrides") or {})
-        overrides["workers"] = frame_workers
+    def fail(error: str) -> JobState:
+        shutil.rmtree(out, ignore_errors=True)
+        store.update_job(job_id, only_if_state=RUNNING, state=JobState.FAILED, error=_public(error, store, paths),
+                         finished=time.time(), pid=None)
+        return JobState.FAILED
+
+    try:
+        for field, (kind, _) in INPUT_ASSETS.items():
+            asset_id = getattr(request, field)
+            if asset_id is None:
+                continue
+            asset = store.asset(job.owner, asset_id, kind)
+            if asset is None:  # checked at submission; only a damaged store gets here
+                raise RetargetError(f"{field}: asset {asset_id} is gone from the store")
+            paths[field] = store.asset_path(asset)
+        config = load_config(None, request.preset, request.overrides)
         # built atlases are kept per (source, target, annotations): a rig's second job skips the build
-        overrides["atlas_cache"] = str(store.paths.atlas_cache)
-        if dask_scheduler:
-            overrides["dask_scheduler"] = dask_scheduler
-        config = load_config(None, request.get("preset", "default"), overrides)
+        executor = Executor(workers=settings.frame_workers, dask_scheduler=settings.dask_scheduler,
+                            atlas_cache=store.paths.atlas_cache, progress=progress)
         progress("loading", 0, 1)
-        clip = load_clip(asset_path("clip", "clip"))
-        target = load_rig(asset_path("rig", "rig"))
-        if request.get("source_rig"):
-            source = load_rig(asset_path("source_rig", "rig"))
-        else:  # only a demo hand by name: a clip's own field never names a server path
-            source = resolve_rig(clip.source_rig)
-        annotations = load_annotations(asset_path("annotations", "annotations"))
-        result = retarget(clip, source, target, annotations, config, progress=progress)
+        # source_rig None: load_inputs takes the demo hand the clip names, and refuses anything else
+        inputs = load_inputs(paths["clip"], paths["rig"], paths["annotations"], source_rig=paths.get("source_rig"),
+                             frames=request.frames)
+        _asset_provenance(inputs.sources, request)
+        result = retarget(inputs, config, executor)
+        # the store's folders are named relative to the data directory, as everywhere the client sees
+        result.provenance["executor"]["atlas_cache"] = str(store.paths.atlas_cache.relative_to(store.paths.root))
         progress("writing", 0, 1)
         result.write(out)
         _write_usdc(out)
-        if request.get("evaluate", True):
+        if request.evaluate:
             from retarget_core.evaluate.report import write_evaluation
 
             progress("evaluating", 0, 1)
-            write_evaluation(out, stride=evaluate_stride)
+            write_evaluation(out, stride=settings.evaluate_stride)
         store.publish_artifacts(job_id, out)
         timings = {k: round(float(v), 4) for k, v in result.timings.items()}
-        store.update_job(job_id, only_if_state=("running",), state="succeeded", stage="done", progress=1.0,
+        store.update_job(job_id, only_if_state=RUNNING, state=JobState.SUCCEEDED, stage="done", progress=1.0,
                          finished=time.time(), timings=timings, summary=to_jsonable(result.summary), pid=None)
-        return "succeeded"
+        return JobState.SUCCEEDED
     except Orphaned:
         shutil.rmtree(out, ignore_errors=True)
         raise
-    except (RetargetError, ValueError) as err:  # bad input that only shows when the job runs
-        shutil.rmtree(out, ignore_errors=True)
-        store.update_job(job_id, only_if_state=("running",), state="failed", error=str(err), finished=time.time(),
-                         pid=None)
-        return "failed"
-    except Exception as err:  # noqa: BLE001 - any other failure is reported, with its trace in the log
-        shutil.rmtree(out, ignore_errors=True)
-        traceback.print_exc()
-        store.update_job(job_id, only_if_state=("running",), state="failed", pid=None, finished=time.time(),
-                         error=f"internal error ({type(err).__name__}): {err}")
-        return "failed"
+    except RetargetError as err:  # bad input that only shows when the job runs
+        return fail(str(err))
+    except Exception as err:  # noqa: BLE001 - a bug: the job fails, the traceback goes to the log
+        log.exception("job %s: internal error", job_id)
+        return fail(f"internal error ({type(err).__name__}): {err}")
+
+
+def _asset_provenance(sources: dict, request) -> None:
+    """The inputs' provenance names the request's asset ids, not the store's file paths."""
+    for field, (_, name) in INPUT_ASSETS.items():
+        entry = sources.get(name)
+        if entry is not None and "path" in entry:
+            del entry["path"]
+            entry["asset"] = getattr(request, field)
+
+
+def _public(message: str, store: Store, paths: dict) -> str:
+    """A job's error as its owner sees it: the store's file paths replaced by what they are."""
+    for field, path in paths.items():
+        message = message.replace(str(path), f"the {field} asset")
+    return message.replace(str(store.paths.root), "DATA")
 
 
 def _write_usdc(out) -> None:
@@ -130,18 +157,14 @@ def _write_usdc(out) -> None:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m server.job_process")
-    parser.add_argument("--data-dir", required=True)
     parser.add_argument("--job", required=True)
     parser.add_argument("--parent", type=int)
-    parser.add_argument("--frame-workers", type=int, default=1)
-    parser.add_argument("--dask-scheduler", default="")
-    parser.add_argument("--evaluate-stride", type=int, default=4)
+    parser.add_argument("--settings", required=True, help="the service's Settings as JSON")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr)
-    store = Store(args.data_dir)
-    state = run_job(store, args.job, frame_workers=args.frame_workers, dask_scheduler=args.dask_scheduler,
-                    parent=args.parent, evaluate_stride=args.evaluate_stride)
-    return 0 if state == "succeeded" else 1
+    settings = Settings.model_validate_json(args.settings)
+    state = run_job(Store(settings.data_dir), args.job, settings, parent=args.parent)
+    return 0 if state == JobState.SUCCEEDED else 1
 
 
 if __name__ == "__main__":

@@ -18,8 +18,9 @@ import threading
 import time
 from pathlib import Path
 
+from .schemas import JobState
 from .settings import Settings
-from .storage import Store
+from .storage import JobRow, Store
 
 log = logging.getLogger("server.runner")
 
@@ -79,21 +80,22 @@ class JobRunner:
         self.children.clear()
 
     def recover(self) -> None:
-        for job in self.store.jobs(states=("running",)):
-            if _alive_job_process(job["pid"], job["id"]):
-                _stop_group(job["pid"])
+        for job in self.store.jobs(states=(JobState.RUNNING,)):
+            if _alive_job_process(job.pid, job.id):
+                _stop_group(job.pid)
             self._requeue_or_fail(job, "the service stopped while the job was running")
 
-    def _requeue_or_fail(self, job: dict, why: str) -> None:
-        if job["cancel_requested"]:
-            self.store.update_job(job["id"], only_if_state=("running",), state="cancelled", pid=None,
+    def _requeue_or_fail(self, job: JobRow, why: str) -> None:
+        running = (JobState.RUNNING,)
+        if job.cancel_requested:
+            self.store.update_job(job.id, only_if_state=running, state=JobState.CANCELLED, pid=None,
                                   finished=time.time(), stage="cancelled")
-        elif job["attempts"] >= self.settings.max_attempts:
-            self.store.update_job(job["id"], only_if_state=("running",), state="failed", pid=None,
-                                  finished=time.time(), error=f"{why}; gave up after {job['attempts']} attempts")
+        elif job.attempts >= self.settings.max_attempts:
+            self.store.update_job(job.id, only_if_state=running, state=JobState.FAILED, pid=None,
+                                  finished=time.time(), error=f"{why}; gave up after {job.attempts} attempts")
         else:
-            log.info("re-queueing job %s (%s)", job["id"], why)
-            self.store.update_job(job["id"], only_if_state=("running",), state="queued", pid=None, stage="queued",
+            log.info("re-queueing job %s (%s)", job.id, why)
+            self.store.update_job(job.id, only_if_state=running, state=JobState.QUEUED, pid=None, stage="queued",
                                   progress=0.0, frames_done=0)
 
     # ---- the loop ----------------------------------------------------------------------------
@@ -109,15 +111,15 @@ class JobRunner:
         for job_id, proc in list(self.children.items()):
             job = self.store.job(job_id)
             if proc.poll() is None:
-                if job is not None and job["cancel_requested"]:
+                if job is not None and job.cancel_requested:
                     _stop_group(proc.pid)
                     proc.wait()
                     self.children.pop(job_id)
-                    self.store.update_job(job_id, only_if_state=("running",), state="cancelled", pid=None,
-                                          finished=time.time(), stage="cancelled")
+                    self.store.update_job(job_id, only_if_state=(JobState.RUNNING,), state=JobState.CANCELLED,
+                                          pid=None, finished=time.time(), stage="cancelled")
                 continue
             self.children.pop(job_id)
-            if job is not None and job["state"] == "running":  # died without a final state
+            if job is not None and job.state == JobState.RUNNING:  # died without a final state
                 self._requeue_or_fail(job, f"the job process exited with code {proc.returncode}")
             self._prune_cache()
         while len(self.children) < self.settings.job_slots and not self._stop.is_set():
@@ -133,16 +135,14 @@ class JobRunner:
         if removed:
             log.info("atlas cache: removed %d files (%.0f MB)", removed, freed / 1e6)
 
-    def _spawn(self, job: dict) -> None:
-        s = self.settings
-        cmd = [sys.executable, "-m", "server.job_process", "--data-dir", str(self.store.paths.root),
-               "--job", job["id"], "--parent", str(os.getpid()), "--frame-workers", str(s.frame_workers),
-               "--evaluate-stride", str(s.evaluate_stride)]
-        if s.dask_scheduler:
-            cmd += ["--dask-scheduler", s.dask_scheduler]
-        with (self.logs / f"{job['id']}.log").open("ab") as log_file:
+    def _spawn(self, job: JobRow) -> None:
+        # the job process gets the settings whole, with the data directory the store resolved
+        settings = self.settings.model_copy(update={"data_dir": self.store.paths.root})
+        cmd = [sys.executable, "-m", "server.job_process", "--job", job.id, "--parent", str(os.getpid()),
+               "--settings", settings.model_dump_json()]
+        with (self.logs / f"{job.id}.log").open("ab") as log_file:
             proc = subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                     start_new_session=True, cwd=str(Path(__file__).resolve().parent.parent))
-        self.children[job["id"]] = proc
-        self.store.update_job(job["id"], only_if_state=("running",), pid=proc.pid)
-        log.info("started job %s (attempt %d, pid %d)", job["id"], job["attempts"], proc.pid)
+        self.children[job.id] = proc
+        self.store.update_job(job.id, only_if_state=(JobState.RUNNING,), pid=proc.pid)
+        log.info("started job %s (attempt %d, pid %d)", job.id, job.attempts, proc.pid)

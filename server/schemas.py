@@ -2,11 +2,30 @@
 
 from __future__ import annotations
 
+from enum import StrEnum
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, field_validator
 
 SHA256 = r"^[0-9a-f]{64}$"
+
+
+class JobState(StrEnum):
+    """The one list of job states (the store, the runner and the API all use it)."""
+
+    QUEUED = "queued"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    CANCELLED = "cancelled"
+
+    @property
+    def final(self) -> bool:
+        return self in FINAL_STATES
+
+
+ACTIVE_STATES = (JobState.QUEUED, JobState.RUNNING)
+FINAL_STATES = (JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELLED)
 
 
 class Problem(BaseModel):
@@ -15,9 +34,13 @@ class Problem(BaseModel):
     detail: str
 
 
+#: What an asset is (see :mod:`server.assets`).
+AssetKind = Literal["rig", "annotations", "clip", "file"]
+
+
 class Asset(BaseModel):
     id: str = Field(description="sha256 of the content")
-    kind: Literal["rig", "annotations", "clip", "file"]
+    kind: AssetKind
     name: str
     size: int
     created: float
@@ -57,11 +80,20 @@ class JobCreate(BaseModel):
     preset: Literal["default", "paper"] = "default"
     overrides: dict[str, Any] = Field(default_factory=dict, description='dotted config keys, e.g. {"solver.maxeval": 50}')
     evaluate: bool = Field(default=True, description="also write metrics.json and the report's plots")
+    frames: tuple[StrictInt, StrictInt] | None = Field(
+        default=None, description="[start, end) frames of the clip to retarget (end excluded); null: the whole clip")
+
+    @field_validator("frames")
+    @classmethod
+    def _range(cls, frames):
+        if frames is not None and not 0 <= frames[0] < frames[1]:
+            raise ValueError(f"[start, end) must have 0 <= start < end, got {list(frames)}")
+        return frames
 
 
 class Job(BaseModel):
     id: str
-    state: Literal["queued", "running", "succeeded", "failed", "cancelled"]
+    state: JobState
     stage: str
     progress: float
     frames_done: int

@@ -1,29 +1,44 @@
-"""The service's settings: one data directory, limits, and where frames are solved."""
+"""The service's settings: one data directory, limits, and where frames are solved.
+
+:class:`Settings` is their only form: ``handretarget serve`` builds it from its options, the app
+and the job runner read it, and each job process gets it whole (``--settings``, its JSON)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 MIB = 1024 * 1024
 
 
-@dataclass
-class Settings:
+class Settings(BaseModel):
     """``data_dir``: the store (see :mod:`server.storage`). ``job_slots``: jobs run at once
     (each in its own process). ``frame_workers``: the core's process pool per job (ignored with
     ``dask_scheduler``, where frame chunks run on the cluster's workers). Limits per owner:
     ``max_upload_bytes`` (413 beyond), ``max_active_jobs`` queued or running (429 beyond).
     ``max_attempts``: a job whose process dies (or whose service is killed) is re-run at most
-    this many times in all. ``atlas_cache_bytes``: the built contact atlases kept under
-    DATA/cache/atlas (least recently used removed after each job)."""
+    this many times in all. ``evaluate_stride``: every how many frames a job's evaluation
+    measures. ``atlas_cache_bytes``: the built contact atlases kept under DATA/cache/atlas
+    (least recently used removed after each job)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
     data_dir: Path
-    job_slots: int = 1
-    frame_workers: int = 1
+    job_slots: int = Field(default=1, ge=1)
+    frame_workers: int = Field(default=1, ge=1)
     dask_scheduler: str = ""
-    max_upload_bytes: int = 256 * MIB
-    max_active_jobs: int = 32
-    max_attempts: int = 3
-    evaluate_stride: int = 4
-    atlas_cache_bytes: int = 4096 * MIB
+    max_upload_bytes: int = Field(default=256 * MIB, ge=1)
+    max_active_jobs: int = Field(default=32, ge=1)
+    max_attempts: int = Field(default=3, ge=1)
+    evaluate_stride: int = Field(default=4, ge=1)
+    atlas_cache_bytes: int = Field(default=4096 * MIB, ge=0)
+
+    @field_validator("dask_scheduler")
+    @classmethod
+    def _dask_address(cls, value: str) -> str:
+        """The core's own check (tcp://HOST:PORT), so a bad address stops the service at start."""
+        from retarget_core.solve.config import check_dask_address
+
+        check_dask_address(value, "dask_scheduler")
+        return value

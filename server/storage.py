@@ -12,7 +12,8 @@ blobs and artifacts, all under one data directory::
 Every write that others may read is atomic: a blob is written under tmp/ and renamed into
 place, a job's artifact folder is renamed into place whole, and a job only becomes
 ``succeeded`` after that. The service process and its job processes open their own
-connections (``connect``); WAL lets readers run beside the one writer.
+connections (``connect``); WAL lets readers run beside the one writer. Rows come back
+typed: :class:`AssetRow`, :class:`JobRow` (its state a :class:`~server.schemas.JobState`).
 """
 
 from __future__ import annotations
@@ -29,11 +30,9 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-SCHEMA_VERSION = 1
+from .schemas import ACTIVE_STATES, Asset, JobCreate, JobState
 
-JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
-ACTIVE_STATES = ("queued", "running")
-FINAL_STATES = ("succeeded", "failed", "cancelled")
+SCHEMA_VERSION = 1
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -57,9 +56,82 @@ CREATE INDEX IF NOT EXISTS jobs_state ON jobs (state, created);
 """
 
 
+def _marks(values) -> str:
+    """``?, ?, ...``: one SQL placeholder per value."""
+    return ", ".join("?" * len(values))
+
+
 def hash_token(token: str) -> str:
     """Tokens are 256-bit random strings, so one sha256 (not a slow password hash) is enough."""
     return hashlib.sha256(token.encode("utf-8")).hexdigest()
+
+
+@dataclass(frozen=True)
+class AssetRow:
+    """One owner's asset: ``path`` is relative to the data directory; ``info`` what the
+    core's reader found in it (see :mod:`server.assets`)."""
+
+    owner: str
+    sha256: str
+    kind: str
+    name: str
+    size: int
+    path: str
+    info: dict
+    created: float
+
+    @property
+    def id(self) -> str:
+        return self.sha256
+
+    def public(self) -> Asset:
+        """The asset as the API shows it (no owner, no server path)."""
+        return Asset(id=self.sha256, kind=self.kind, name=self.name, size=self.size, created=self.created,
+                     info=self.info)
+
+    @classmethod
+    def from_row(cls, row) -> "AssetRow":
+        return cls(owner=row["owner"], sha256=row["sha256"], kind=row["kind"], name=row["name"], size=row["size"],
+                   path=row["path"], info=json.loads(row["info"]), created=row["created"])
+
+
+@dataclass(frozen=True)
+class JobRow:
+    """One job as stored. Times are epoch seconds; ``pid`` the job process while running."""
+
+    id: str
+    owner: str
+    state: JobState
+    request: JobCreate
+    idempotency_key: str | None
+    stage: str
+    progress: float
+    frames_done: int
+    frames_total: int
+    timings: dict
+    summary: dict
+    error: str | None
+    attempts: int
+    pid: int | None
+    cancel_requested: bool
+    created: float
+    started: float | None
+    finished: float | None
+    updated: float
+
+    @classmethod
+    def from_row(cls, row) -> "JobRow":
+        return cls(id=row["id"], owner=row["owner"], state=JobState(row["state"]),
+                   request=JobCreate.model_validate_json(row["request"]), idempotency_key=row["idempotency_key"],
+                   stage=row["stage"], progress=row["progress"], frames_done=row["frames_done"],
+                   frames_total=row["frames_total"], timings=json.loads(row["timings"]),
+                   summary=json.loads(row["summary"]), error=row["error"], attempts=row["attempts"], pid=row["pid"],
+                   cancel_requested=bool(row["cancel_requested"]), created=row["created"], started=row["started"],
+                   finished=row["finished"], updated=row["updated"])
+
+
+#: The job columns :meth:`Store.update_job` may set.
+_UPDATABLE = frozenset(JobRow.__dataclass_fields__) - {"id", "owner", "request", "idempotency_key", "created"}
 
 
 @dataclass(frozen=True)
@@ -84,7 +156,7 @@ class Paths:
 
     @property
     def atlas_cache(self) -> Path:
-        """Built contact atlases (see ``atlas_cache`` in the core's config); safe to delete."""
+        """Built contact atlases (the jobs' ``Executor.atlas_cache``); safe to delete."""
         return self.root / "cache" / "atlas"
 
     def blob(self, sha256: str, ext: str) -> Path:
@@ -149,7 +221,8 @@ class Store:
             os.replace(tmp, final)
         return final
 
-    def add_asset(self, owner: str, sha256: str, kind: str, name: str, size: int, path: Path, info: dict) -> tuple[dict, bool]:
+    def add_asset(self, owner: str, sha256: str, kind: str, name: str, size: int, path: Path,
+                  info: dict) -> tuple[AssetRow, bool]:
         """Record an asset for ``owner``; (asset, created) — an identical earlier upload is kept."""
         rel = str(path.relative_to(self.paths.root))
         with self.connect() as db:
@@ -158,40 +231,34 @@ class Store:
             created = cur.rowcount == 1
         return self.asset(owner, sha256, kind), created
 
-    def asset(self, owner: str, sha256: str, kind: str | None = None) -> dict | None:
+    def asset(self, owner: str, sha256: str, kind: str | None = None) -> AssetRow | None:
         q = "SELECT * FROM assets WHERE owner = ? AND sha256 = ?" + (" AND kind = ?" if kind else "")
         with self.connect() as db:
             row = db.execute(q, (owner, sha256, kind) if kind else (owner, sha256)).fetchone()
-        return None if row is None else self._asset(row)
+        return None if row is None else AssetRow.from_row(row)
 
-    def asset_any_owner(self, sha256: str, kind: str) -> dict | None:
+    def asset_any_owner(self, sha256: str, kind: str) -> AssetRow | None:
         """The same content already validated as ``kind`` for someone (its info is reused)."""
         with self.connect() as db:
             row = db.execute("SELECT * FROM assets WHERE sha256 = ? AND kind = ? LIMIT 1", (sha256, kind)).fetchone()
-        return None if row is None else self._asset(row)
+        return None if row is None else AssetRow.from_row(row)
 
-    def assets(self, owner: str, kind: str | None = None) -> list[dict]:
+    def assets(self, owner: str, kind: str | None = None) -> list[AssetRow]:
         q = "SELECT * FROM assets WHERE owner = ?" + (" AND kind = ?" if kind else "") + " ORDER BY created"
         with self.connect() as db:
             rows = db.execute(q, (owner, kind) if kind else (owner,)).fetchall()
-        return [self._asset(r) for r in rows]
+        return [AssetRow.from_row(r) for r in rows]
 
-    def asset_path(self, asset: dict) -> Path:
-        return self.paths.root / asset["path"]
-
-    @staticmethod
-    def _asset(row) -> dict:
-        d = dict(row)
-        d["info"] = json.loads(d["info"])
-        d["id"] = d["sha256"]
-        return d
+    def asset_path(self, asset: AssetRow) -> Path:
+        return self.paths.root / asset.path
 
     # ---- jobs --------------------------------------------------------------------------------
-    def create_job(self, owner: str, request: dict, idempotency_key: str | None, max_active: int) -> tuple[dict, bool]:
+    def create_job(self, owner: str, request: JobCreate, idempotency_key: str | None,
+                   max_active: int) -> tuple[JobRow, bool]:
         """Queue a job; (job, created). With an ``idempotency_key`` already used by ``owner``
         the earlier job is returned (``ValueError`` if its request differs). ``LookupError``
         when the owner already has ``max_active`` queued or running jobs."""
-        body = json.dumps(request, sort_keys=True)
+        body = json.dumps(request.model_dump(mode="json"), sort_keys=True)
         now = time.time()
         with self.connect() as db:
             db.execute("BEGIN IMMEDIATE")  # the limit check and the insert are one step
@@ -201,84 +268,85 @@ class Store:
                                      (owner, idempotency_key)).fetchone()
                     if row is not None:
                         db.execute("COMMIT")
-                        if row["request"] != body:
+                        earlier = JobRow.from_row(row)
+                        if earlier.request != request:
                             raise ValueError("this Idempotency-Key was used for a different request")
-                        return self._job(row), False
-                active = db.execute("SELECT COUNT(*) FROM jobs WHERE owner = ? AND state IN ('queued', 'running')",
-                                    (owner,)).fetchone()[0]
+                        return earlier, False
+                active = db.execute(f"SELECT COUNT(*) FROM jobs WHERE owner = ? AND state IN "
+                                    f"({_marks(ACTIVE_STATES)})",
+                                    (owner, *(s.value for s in ACTIVE_STATES))).fetchone()[0]
                 if active >= max_active:
                     db.execute("COMMIT")
                     raise LookupError(f"you already have {active} queued or running jobs (the limit is {max_active})")
                 job_id = uuid.uuid4().hex
                 db.execute("INSERT INTO jobs (id, owner, state, request, idempotency_key, created, updated) "
-                           "VALUES (?, ?, 'queued', ?, ?, ?, ?)", (job_id, owner, body, idempotency_key, now, now))
+                           "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                           (job_id, owner, JobState.QUEUED.value, body, idempotency_key, now, now))
                 db.execute("COMMIT")
             except sqlite3.Error:
                 db.execute("ROLLBACK")
                 raise
         return self.job(job_id), True
 
-    def job(self, job_id: str, owner: str | None = None) -> dict | None:
+    def job(self, job_id: str, owner: str | None = None) -> JobRow | None:
         q = "SELECT * FROM jobs WHERE id = ?" + (" AND owner = ?" if owner is not None else "")
         with self.connect() as db:
             row = db.execute(q, (job_id, owner) if owner is not None else (job_id,)).fetchone()
-        return None if row is None else self._job(row)
+        return None if row is None else JobRow.from_row(row)
 
-    def jobs(self, owner: str | None = None, states=None, limit: int = 1000) -> list[dict]:
+    def jobs(self, owner: str | None = None, states: tuple[JobState, ...] | None = None,
+             limit: int = 1000) -> list[JobRow]:
         where, args = [], []
         if owner is not None:
             where.append("owner = ?")
             args.append(owner)
         if states:
-            where.append(f"state IN ({','.join('?' * len(states))})")
-            args += list(states)
+            where.append(f"state IN ({_marks(states)})")
+            args += [JobState(x).value for x in states]
         q = "SELECT * FROM jobs" + (" WHERE " + " AND ".join(where) if where else "") + " ORDER BY created LIMIT ?"
         with self.connect() as db:
-            return [self._job(r) for r in db.execute(q, (*args, limit)).fetchall()]
+            return [JobRow.from_row(r) for r in db.execute(q, (*args, limit)).fetchall()]
 
-    def state_counts(self) -> dict:
+    def state_counts(self) -> dict[str, int]:
+        """{state: number of jobs} over every state."""
         with self.connect() as db:
             rows = db.execute("SELECT state, COUNT(*) AS n FROM jobs GROUP BY state").fetchall()
-        return {s: 0 for s in JOB_STATES} | {r["state"]: r["n"] for r in rows}
+        return {s.value: 0 for s in JobState} | {r["state"]: r["n"] for r in rows}
 
-    def update_job(self, job_id: str, *, only_if_state=None, **fields) -> bool:
-        """Set ``fields`` (dicts stored as JSON); with ``only_if_state`` only while the job is in
-        one of those states. True when a row changed."""
+    def update_job(self, job_id: str, *, only_if_state: tuple[JobState, ...] | None = None, **fields) -> bool:
+        """Set ``fields`` (columns of :class:`JobRow`; dicts stored as JSON); with
+        ``only_if_state`` only while the job is in one of those states. True when a row changed."""
+        if set(fields) - _UPDATABLE:
+            raise TypeError(f"not updatable job fields: {', '.join(sorted(set(fields) - _UPDATABLE))}")
         fields["updated"] = time.time()
         for k in ("timings", "summary"):
             if k in fields:
                 fields[k] = json.dumps(fields[k])
+        if "state" in fields:
+            fields["state"] = JobState(fields["state"]).value
         sets = ", ".join(f"{k} = ?" for k in fields)
         q = f"UPDATE jobs SET {sets} WHERE id = ?"
         args = [*fields.values(), job_id]
         if only_if_state:
-            q += f" AND state IN ({','.join('?' * len(only_if_state))})"
-            args += list(only_if_state)
+            q += f" AND state IN ({_marks(only_if_state)})"
+            args += [JobState(x).value for x in only_if_state]
         with self.connect() as db:
             return db.execute(q, args).rowcount == 1
 
-    def claim_next_job(self) -> dict | None:
+    def claim_next_job(self) -> JobRow | None:
         """The oldest queued job, marked running (attempts + 1), or None."""
         with self.connect() as db:
             db.execute("BEGIN IMMEDIATE")
-            row = db.execute("SELECT id FROM jobs WHERE state = 'queued' ORDER BY created LIMIT 1").fetchone()
+            row = db.execute("SELECT id FROM jobs WHERE state = ? ORDER BY created LIMIT 1",
+                             (JobState.QUEUED.value,)).fetchone()
             if row is None:
                 db.execute("COMMIT")
                 return None
             now = time.time()
-            db.execute("UPDATE jobs SET state = 'running', attempts = attempts + 1, started = ?, updated = ?, "
-                       "stage = 'starting', error = NULL WHERE id = ?", (now, now, row["id"]))
+            db.execute("UPDATE jobs SET state = ?, attempts = attempts + 1, started = ?, updated = ?, "
+                       "stage = 'starting', error = NULL WHERE id = ?", (JobState.RUNNING.value, now, now, row["id"]))
             db.execute("COMMIT")
         return self.job(row["id"])
-
-    @staticmethod
-    def _job(row) -> dict:
-        d = dict(row)
-        d["request"] = json.loads(d["request"])
-        d["timings"] = json.loads(d["timings"])
-        d["summary"] = json.loads(d["summary"])
-        d["cancel_requested"] = bool(d["cancel_requested"])
-        return d
 
     # ---- artifacts ---------------------------------------------------------------------------
     def publish_artifacts(self, job_id: str, folder: Path) -> Path:

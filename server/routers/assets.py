@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import hashlib
 import shutil
-from typing import Literal
 
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
@@ -13,22 +12,17 @@ from fastapi.responses import FileResponse
 
 from ..assets import UploadError, annotations_info, clip_info, import_grab_clip, validate_upload
 from ..deps import current_owner, get_settings, get_store
-from ..schemas import SHA256, Asset, AssetList, GrabImport, Problem, ProposeRequest
+from ..schemas import SHA256, Asset, AssetKind, AssetList, GrabImport, Problem, ProposeRequest
 from ..settings import Settings
-from ..storage import Store
+from ..storage import AssetRow, Store
 
 router = APIRouter(prefix="/v1", tags=["assets"])
-Kind = Literal["rig", "annotations", "clip", "file"]
 ERRORS = {401: {"model": Problem}, 404: {"model": Problem}, 413: {"model": Problem}, 422: {"model": Problem}}
 # a JSON body that cannot be read at all (e.g. not UTF-8) is refused by FastAPI with 400
 BAD_BODY = {400: {"model": Problem, "description": "the body could not be parsed"}}
 
 
-def public(asset: dict) -> dict:
-    return {k: asset[k] for k in ("id", "kind", "name", "size", "created", "info")}
-
-
-def owned(store: Store, owner: str, asset_id: str, kind: str, field: str) -> dict:
+def owned(store: Store, owner: str, asset_id: str, kind: str, field: str) -> AssetRow:
     """The owner's asset of ``kind``; 404 naming the request field otherwise (another owner's
     asset is as unknown as a missing one)."""
     asset = store.asset(owner, asset_id, kind)
@@ -62,11 +56,11 @@ async def _receive(request: Request, store: Store, limit: int):
 
 
 def _store_validated(store: Store, owner: str, kind: str, name: str, tmp, sha: str, size: int,
-                     settings: Settings) -> tuple[dict, bool]:
+                     settings: Settings) -> tuple[AssetRow, bool]:
     known = store.asset_any_owner(sha, kind)
     if known is not None:  # the same bytes were validated before: share the blob
         tmp.unlink(missing_ok=True)
-        return store.add_asset(owner, sha, kind, name, size, store.asset_path(known), known["info"])
+        return store.add_asset(owner, sha, kind, name, size, store.asset_path(known), known.info)
     scratch = store.new_tmp(".d")
     scratch.mkdir()
     try:
@@ -82,7 +76,7 @@ def _store_validated(store: Store, owner: str, kind: str, name: str, tmp, sha: s
 @router.post("/assets/{kind}", response_model=Asset, status_code=201, responses=ERRORS | {200: {"model": Asset}},
              openapi_extra={"requestBody": {"required": True, "content": {
                  "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}}})
-async def upload_asset(request: Request, response: Response, kind: Kind,
+async def upload_asset(request: Request, response: Response, kind: AssetKind,
                        name: str = Query(..., min_length=1, max_length=200, description="the file's name"),
                        owner: str = Depends(current_owner), store: Store = Depends(get_store),
                        settings: Settings = Depends(get_settings)):
@@ -95,36 +89,36 @@ async def upload_asset(request: Request, response: Response, kind: Kind,
     except UploadError as err:
         raise HTTPException(422, f"not a valid {kind}: {err}") from err
     response.status_code = 201 if created else 200
-    return public(asset)
+    return asset.public()
 
 
 @router.get("/assets", response_model=AssetList, responses=ERRORS)
-def list_assets(kind: Kind | None = None, owner: str = Depends(current_owner), store: Store = Depends(get_store)):
-    return {"assets": [public(a) for a in store.assets(owner, kind)]}
+def list_assets(kind: AssetKind | None = None, owner: str = Depends(current_owner), store: Store = Depends(get_store)):
+    return AssetList(assets=[a.public() for a in store.assets(owner, kind)])
 
 
 @router.get("/assets/{asset_id}", response_model=Asset, responses=ERRORS)
-def get_asset(asset_id: str = Path(..., pattern=SHA256), kind: Kind | None = None,
+def get_asset(asset_id: str = Path(..., pattern=SHA256), kind: AssetKind | None = None,
               owner: str = Depends(current_owner), store: Store = Depends(get_store)):
     asset = store.asset(owner, asset_id, kind)
     if asset is None:
         raise HTTPException(404, f"no asset {asset_id} of yours")
-    return public(asset)
+    return asset.public()
 
 
 @router.get("/assets/{asset_id}/content", response_class=FileResponse, responses=ERRORS)
-def download_asset(asset_id: str = Path(..., pattern=SHA256), kind: Kind | None = None,
+def download_asset(asset_id: str = Path(..., pattern=SHA256), kind: AssetKind | None = None,
                    owner: str = Depends(current_owner), store: Store = Depends(get_store)):
     """The stored file (for a robot bundle: the USD rig imported from it)."""
     asset = store.asset(owner, asset_id, kind)
     if asset is None:
         raise HTTPException(404, f"no asset {asset_id} of yours")
     path = store.asset_path(asset)
-    return FileResponse(path, filename=f"{asset['name'].rsplit('.', 1)[0]}{path.suffix}",
+    return FileResponse(path, filename=f"{asset.name.rsplit('.', 1)[0]}{path.suffix}",
                         media_type="application/octet-stream")
 
 
-def _save_new_asset(store: Store, owner: str, kind: str, name: str, write, info: dict) -> tuple[dict, bool]:
+def _save_new_asset(store: Store, owner: str, kind: str, name: str, write, info: dict) -> tuple[AssetRow, bool]:
     """Store a file the service made (``write(path)``) as ``owner``'s asset; (asset, created)."""
     tmp = store.new_tmp(".npz" if kind == "clip" else ".json")
     try:
@@ -156,7 +150,7 @@ def import_grab(body: GrabImport, response: Response, owner: str = Depends(curre
     asset, created = _save_new_asset(store, owner, "clip", body.name, clip.save,
                                      clip_info(clip) | {"imported_from": "grab"})
     response.status_code = 201 if created else 200
-    return public(asset)
+    return asset.public()
 
 
 @router.post("/annotations/propose", response_model=Asset, status_code=201, responses=ERRORS | BAD_BODY)
@@ -164,24 +158,24 @@ def propose(body: ProposeRequest, response: Response, owner: str = Depends(curre
             store: Store = Depends(get_store)):
     """Proposed annotations (markers by name, one axial curve per finger and two on the palm)
     from the source rig onto the target rig, stored as an annotations asset to edit or use."""
-    from retarget_core.clip.demo import source_rig
     from retarget_core.errors import InputError
-    from retarget_core.rig.io import load_rig
+    from retarget_core.inputs import DEFAULT_SOURCE_RIG
+    from retarget_core.rig.io import load_rig, resolve_rig
     from retarget_core.transfer.annotations import save_annotations
     from retarget_core.transfer.propose import propose_annotations
 
     target_asset = owned(store, owner, body.target_rig, "rig", "target_rig")
     source = (load_rig(store.asset_path(owned(store, owner, body.source_rig, "rig", "source_rig")))
-              if body.source_rig else source_rig())
+              if body.source_rig else resolve_rig(DEFAULT_SOURCE_RIG))
     try:
         annotations = propose_annotations(source, load_rig(store.asset_path(target_asset)))
     except InputError as err:
         raise HTTPException(422, f"cannot propose annotations: {err}") from err
-    name = f"{source.name}_to_{target_asset['info'].get('name', 'target')}.json"
+    name = f"{source.name}_to_{target_asset.info.get('name', 'target')}.json"
     asset, created = _save_new_asset(store, owner, "annotations", name, lambda p: save_annotations(annotations, p),
                                      annotations_info(annotations) | {"proposed": True})
     response.status_code = 201 if created else 200
-    return public(asset)
+    return asset.public()
 
 
 

@@ -12,9 +12,9 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, StreamingResponse
 
 from ..deps import current_owner, get_settings, get_store
-from ..schemas import Job, JobCreate, JobList, Problem
+from ..schemas import Job, JobCreate, JobList, JobState, Problem
 from ..settings import Settings
-from ..storage import FINAL_STATES, JOB_STATES, Store
+from ..storage import JobRow, Store
 from .assets import BAD_BODY, owned
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
@@ -24,20 +24,21 @@ ARTIFACTS = {  # name -> media type; nothing else under a job's folder is ever s
     "result.json": "application/json", "animation.json": "application/json", "metrics.json": "application/json",
     "intersection.png": "image/png", "contact_error.png": "image/png", "frames.png": "image/png",
 }
-SERVICE_KEYS = ("workers", "dask_scheduler", "atlas_cache")
 ERRORS = {401: {"model": Problem}, 404: {"model": Problem}, 409: {"model": Problem}, 422: {"model": Problem},
           429: {"model": Problem}}
 
 
-def public(store: Store, job: dict) -> dict:
-    out = {k: job[k] for k in ("id", "state", "stage", "progress", "frames_done", "frames_total", "attempts",
-                               "created", "started", "finished", "timings", "summary", "error", "request")}
-    folder = store.paths.job(job["id"])
-    out["artifacts"] = sorted(n for n in ARTIFACTS if (folder / n).is_file()) if job["state"] == "succeeded" else []
-    return out
+def public(store: Store, job: JobRow) -> Job:
+    """The job as the API shows it (no owner, pid or idempotency key), with its artifacts."""
+    folder = store.paths.job(job.id)
+    artifacts = sorted(n for n in ARTIFACTS if (folder / n).is_file()) if job.state == JobState.SUCCEEDED else []
+    return Job(id=job.id, state=job.state, stage=job.stage, progress=job.progress, frames_done=job.frames_done,
+               frames_total=job.frames_total, attempts=job.attempts, created=job.created, started=job.started,
+               finished=job.finished, timings=job.timings, summary=job.summary, error=job.error, request=job.request,
+               artifacts=artifacts)
 
 
-def _own_job(store: Store, owner: str, job_id: str) -> dict:
+def _own_job(store: Store, owner: str, job_id: str) -> JobRow:
     job = store.job(job_id, owner)
     if job is None:
         raise HTTPException(404, f"no job {job_id} of yours")
@@ -45,37 +46,51 @@ def _own_job(store: Store, owner: str, job_id: str) -> dict:
 
 
 def check_request(body: JobCreate, owner: str, store: Store) -> None:
-    """Everything that can be checked before the job runs: the assets are the caller's and of
-    the right kind, the config is valid, and the annotations were made for this rig."""
+    """Everything that can be checked before the job runs, with the core's own rules: the
+    assets are the caller's and of the right kind, a clip without ``source_rig`` names a demo
+    hand (:func:`~retarget_core.inputs.clip_source_rig`; the job process's ``load_inputs``
+    enforces it again), the frame range fits the clip, the config is valid, and the
+    annotations were made for these meshes."""
+    from retarget_core.clip import load_clip
     from retarget_core.errors import InputError
+    from retarget_core.inputs import clip_source_rig, frame_range
     from retarget_core.solve.config import load_config
 
     clip = owned(store, owner, body.clip, "clip", "clip")
     rig = owned(store, owner, body.rig, "rig", "rig")
     annotations = owned(store, owner, body.annotations, "annotations", "annotations")
-    if body.source_rig:
-        source = owned(store, owner, body.source_rig, "rig", "source_rig")
-    elif not str(clip["info"].get("source_rig", "")).startswith("demo:"):
-        raise HTTPException(422, "source_rig: the clip does not name a demo source hand; upload the rig the clip "
-                                 "was made with (for GRAB clips: the MANO hand as USD) and pass its id as source_rig")
-    else:
-        source = None
-    service_keys = [k for k in body.overrides if k.split(".")[0] in SERVICE_KEYS]
-    if service_keys:
-        raise HTTPException(422, f"overrides: {', '.join(service_keys)} is set by the service, not per job")
+    source = owned(store, owner, body.source_rig, "rig", "source_rig") if body.source_rig else None
     try:
         load_config(None, body.preset, body.overrides)
-    except InputError as err:
-        raise HTTPException(422, f"overrides: {err}") from err
+    except InputError as err:  # e.g. "workers" names the executor option (the service's --workers)
+        raise HTTPException(422, str(err) if err.source == "overrides" else f"overrides: {err}") from err
+    try:
+        frame_range(body.frames, clip.info["frames"])
+        if source is None:
+            clip_source_rig(load_clip(store.asset_path(clip)))
+    except InputError as err:  # its message names the field ("frames: ...", "clip: source_rig: ...")
+        raise HTTPException(422, _without_paths(str(err), store)) from err
+    ann = annotations.info
     for side, asset, field in (("target", rig, "rig"), ("source", source, "source_rig")):
-        if asset is None:
-            continue
-        sig, info = annotations["info"][side], asset["info"]
-        if (sig["vertices"], sig["faces"]) != (info["vertices"], info["faces"]):
-            raise HTTPException(422, f"annotations: made for a {side} mesh of {sig['vertices']} vertices and "
-                                     f"{sig['faces']} faces ({sig['rig']!r}), but {field} {info['name']!r} has "
-                                     f"{info['vertices']} and {info['faces']}; annotate this rig (or ask "
-                                     f"POST /v1/annotations/propose)")
+        if asset is not None:
+            _same_mesh(ann[side], asset.info["vertices"], asset.info["faces"], side, f"{field} {asset.info['name']!r}")
+    # the clip's hand is the source hand's surface: checked here too, also for a demo source hand
+    _same_mesh(ann["source"], clip.info["hand_vertices"], clip.info["hand_faces"], "source",
+               "the clip's hand", hint="pass the rig the clip was made with as source_rig (for GRAB clips: the "
+                                       "MANO hand as USD) with annotations made for it")
+
+
+def _same_mesh(sig: dict, vertices: int, faces: int, side: str, what: str, hint: str = "") -> None:
+    """422 unless the annotations' ``side`` mesh signature has these vertex and face counts."""
+    if (sig["vertices"], sig["faces"]) != (vertices, faces):
+        raise HTTPException(422, f"annotations: made for a {side} mesh of {sig['vertices']} vertices and "
+                                 f"{sig['faces']} faces ({sig['rig']!r}), but {what} has {vertices} and {faces}; "
+                                 + (hint or "annotate this rig (or ask POST /v1/annotations/propose)"))
+
+
+def _without_paths(message: str, store: Store) -> str:
+    """The client never sees the store's paths."""
+    return message.replace(str(store.paths.root), "DATA")
 
 
 @router.post("", response_model=Job, status_code=201, responses=ERRORS | BAD_BODY | {200: {"model": Job}})
@@ -87,7 +102,7 @@ def create_job(body: JobCreate, response: Response, owner: str = Depends(current
     """Queue a retarget of ``clip`` onto ``rig`` with ``annotations``."""
     check_request(body, owner, store)
     try:
-        job, created = store.create_job(owner, body.model_dump(), idempotency_key, settings.max_active_jobs)
+        job, created = store.create_job(owner, body, idempotency_key, settings.max_active_jobs)
     except LookupError as err:
         raise HTTPException(429, f"{err}; wait for some to finish or cancel them", headers={"Retry-After": "10"}) from err
     except ValueError as err:
@@ -97,8 +112,8 @@ def create_job(body: JobCreate, response: Response, owner: str = Depends(current
 
 
 @router.get("", response_model=JobList, responses=ERRORS)
-def list_jobs(state: str | None = Query(default=None, pattern="^(" + "|".join(JOB_STATES) + ")$"),
-              owner: str = Depends(current_owner), store: Store = Depends(get_store)):
+def list_jobs(state: JobState | None = Query(default=None), owner: str = Depends(current_owner),
+              store: Store = Depends(get_store)):
     return {"jobs": [public(store, j) for j in store.jobs(owner, (state,) if state else None)]}
 
 
@@ -113,11 +128,11 @@ def cancel_job(job_id: str = Path(..., pattern=JOB_ID), owner: str = Depends(cur
                store: Store = Depends(get_store)):
     """Cancel a queued job at once, or ask a running one to stop (it turns ``cancelled``)."""
     job = _own_job(store, owner, job_id)
-    if job["state"] in FINAL_STATES:
-        raise HTTPException(409, f"job {job_id} already {job['state']}; nothing to cancel")
-    if not store.update_job(job_id, only_if_state=("queued",), state="cancelled", stage="cancelled",
+    if job.state.final:
+        raise HTTPException(409, f"job {job_id} already {job.state}; nothing to cancel")
+    if not store.update_job(job_id, only_if_state=(JobState.QUEUED,), state=JobState.CANCELLED, stage="cancelled",
                             cancel_requested=1, finished=time.time()):
-        store.update_job(job_id, only_if_state=("running",), cancel_requested=1)
+        store.update_job(job_id, only_if_state=(JobState.RUNNING,), cancel_requested=1)
     return public(store, store.job(job_id))
 
 
@@ -132,11 +147,11 @@ async def job_events(job_id: str = Path(..., pattern=JOB_ID), owner: str = Depen
         last = None
         while True:
             job = await run_in_threadpool(store.job, job_id)
-            data = json.dumps(public(store, job))
+            data = json.dumps(public(store, job).model_dump(mode="json"))
             if data != last:
                 last = data
                 yield f"event: status\ndata: {data}\n\n"
-            if job["state"] in FINAL_STATES:
+            if job.state.final:
                 return
             await asyncio.sleep(0.2)
 
@@ -152,8 +167,8 @@ def get_artifact(name: str, job_id: str = Path(..., pattern=JOB_ID), owner: str 
     if name not in ARTIFACTS:
         raise HTTPException(404, f"no artifact {name!r}; artifacts are: {', '.join(sorted(ARTIFACTS))}")
     job = _own_job(store, owner, job_id)
-    if job["state"] != "succeeded":
-        raise HTTPException(409, f"job {job_id} is {job['state']}; artifacts exist once it has succeeded")
+    if job.state != JobState.SUCCEEDED:
+        raise HTTPException(409, f"job {job_id} is {job.state}; artifacts exist once it has succeeded")
     path = store.paths.job(job_id) / name
     if not path.is_file():
         raise HTTPException(404, f"job {job_id} has no {name} (see the job's artifacts list)")

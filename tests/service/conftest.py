@@ -3,6 +3,7 @@ with the standard-library client of dcc_client/."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import socket
@@ -79,7 +80,8 @@ class Service:
 
 
 def _job_processes(data_dir: Path) -> list[int]:
-    pids = []
+    """Job processes of the service over ``data_dir`` (their --settings JSON names it)."""
+    pids, needle = [], json.dumps(str(Path(data_dir).resolve())).encode()
     for proc in Path("/proc").iterdir():
         if not proc.name.isdigit():
             continue
@@ -87,7 +89,7 @@ def _job_processes(data_dir: Path) -> list[int]:
             cmd = (proc / "cmdline").read_bytes().split(b"\0")
         except OSError:
             continue
-        if b"server.job_process" in cmd and str(data_dir).encode() in cmd:
+        if b"server.job_process" in cmd and any(needle in part for part in cmd):
             pids.append(int(proc.name))
     return pids
 

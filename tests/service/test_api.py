@@ -46,16 +46,14 @@ def test_job_runs_and_reports_progress(finished):
 
 def test_downloaded_usd_equals_the_cores_output(finished, inputs, tmp_path):
     """The same input files through the core in this process give the same curves and poses."""
-    from retarget_core.clip import load_clip
+    from retarget_core.execute import Executor
     from retarget_core.export import read_dof_bsplines
-    from retarget_core.retarget import retarget
-    from retarget_core.rig.io import load_rig, resolve_rig
+    from retarget_core.inputs import load_inputs
+    from retarget_core.pipeline import retarget
     from retarget_core.solve.config import load_config
-    from retarget_core.transfer.annotations import load_annotations
 
-    clip = load_clip(inputs["clip"])
-    result = retarget(clip, resolve_rig(clip.source_rig), load_rig(inputs["rig"]),
-                      load_annotations(inputs["annotations"]), load_config(None, "default", FAST | {"workers": 1}))
+    result = retarget(load_inputs(inputs["clip"], inputs["rig"], inputs["annotations"]),
+                      load_config(None, "default", FAST), Executor())
     result.write(tmp_path)
     ours, theirs = read_dof_bsplines(tmp_path / "animation.usda"), read_dof_bsplines(finished["files"]["animation.usda"])
     assert set(ours) == set(theirs) and len(ours) == inputs["target"].n_dofs
@@ -156,9 +154,10 @@ def test_bad_job_requests_name_the_field(service, alice, inputs, finished, tmp_p
         (dict(ids, rig=ids["clip"]), 404, "rig: no rig asset"),
         (dict(ids, overrides={"solver.maxevals": 5}), 422, "solver.maxevals"),
         (dict(ids, overrides={"weights.lambda_m": -1}), 422, "weights.lambda_m"),
-        (dict(ids, overrides={"workers": 8}), 422, "set by the service"),
-        (dict(ids, overrides={"atlas_cache": "/etc"}), 422, "atlas_cache is set by the service"),
-        (dict(ids, overrides={"dask_scheduler": "tcp://10.0.0.1:8786"}), 422, "set by the service"),
+        # how a run executes is the service's (its executor), never part of a job's run configuration
+        (dict(ids, overrides={"workers": 8}), 422, "use the executor's worker count"),
+        (dict(ids, overrides={"atlas_cache": "/etc"}), 422, "use the executor's atlas cache"),
+        (dict(ids, overrides={"dask_scheduler": "tcp://10.0.0.1:8786"}), 422, "use the executor's Dask scheduler"),
         (dict(ids, preset="fastest"), 422, "preset"),
         (dict(ids, clip="not-a-hash"), 422, "clip"),
     ]

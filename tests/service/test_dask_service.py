@@ -44,8 +44,10 @@ def test_job_on_dask_survives_a_killed_worker(tmp_path_factory, inputs):
         assert final["frames_done"] == final["frames_total"] == 46
         assert len(client.nthreads()) == 1  # the scheduler lost one worker and carried on
         assert final["request"]["overrides"] == FAST | {"solver.maxeval": 60}
-        config = __import__("json").loads(c.artifact(job["id"], "result.json"))["config"]
-        assert config["dask_scheduler"] == cluster.address  # the service, not the request, chose the cluster
+        provenance = __import__("json").loads(c.artifact(job["id"], "result.json"))["provenance"]
+        # the service, not the request, chose the cluster: the executor's, recorded beside the run configuration
+        assert provenance["executor"]["dask_scheduler"] == cluster.address
+        assert "dask_scheduler" not in provenance["config"]
     finally:
         if svc is not None:
             svc.stop()

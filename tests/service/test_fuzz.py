@@ -38,17 +38,17 @@ OWNER = "fuzzer"
 def _seed_store(data_dir) -> tuple[str, str]:
     """A token for OWNER and one finished (failed) job of OWNER, written to the store before the
     service starts (the job runner never sees it queued). Returns (token, job id)."""
-    from server.schemas import JobCreate
+    from server.schemas import JobCreate, JobState
     from server.storage import Store
 
     store = Store(data_dir)
     token = store.create_token(OWNER)
-    request = JobCreate(clip="a" * 64, rig="b" * 64, annotations="c" * 64).model_dump()
+    request = JobCreate(clip="a" * 64, rig="b" * 64, annotations="c" * 64)
     job, created = store.create_job(OWNER, request, None, max_active=1)
     assert created
-    assert store.update_job(job["id"], state="failed", stage="loading", error="seeded for fuzzing",
+    assert store.update_job(job.id, state=JobState.FAILED, stage="loading", error="seeded for fuzzing",
                             started=time.time(), finished=time.time(), attempts=1)
-    return token, job["id"]
+    return token, job.id
 
 
 @pytest.fixture(scope="module")
