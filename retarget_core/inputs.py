@@ -23,6 +23,9 @@ from .transfer.annotations import Annotations, load_annotations
 
 #: The demo hand the demonstration clips are made with, when a clip names no source rig.
 DEFAULT_SOURCE_RIG = "demo:source_human@0.004"
+#: Mesh cell sizes (m) a clip may ask its demo source hand to be built at: a clip is untrusted,
+#: and a tiny cell size would build an enormous hand.
+CLIP_DEMO_RESOLUTIONS = (0.001, 0.02)
 
 
 def file_sha256(path) -> str:
@@ -153,6 +156,15 @@ def clip_source_rig(clip: Clip) -> str:
                          "a demo hand (demo:NAME): give the rig the clip was made with explicitly "
                          "(--source-rig on the command line, source_rig in a job request)",
                          source="clip", element="source_rig")
+    _, _, res = spec.partition("@")
+    lo, hi = CLIP_DEMO_RESOLUTIONS
+    try:
+        ok = not res or lo <= float(res) <= hi
+    except ValueError:
+        ok = False
+    if not ok:
+        raise InputError(f"the clip asks for its demo source hand at resolution {res!r}; a clip may ask for "
+                         f"{lo:g} to {hi:g} m", source="clip", element="source_rig")
     return spec
 
 

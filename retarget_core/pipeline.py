@@ -23,6 +23,7 @@ from threadpoolctl import threadpool_limits
 from . import __version__
 from .clip.format import Clip
 from .errors import InputError
+from .evaluate.metrics import contact_distance_per_frame, marker_error_per_frame
 from .execute import Executor, FrameRunner
 from .fit.splines import fit_trajectory
 from .inputs import RunInputs, frame_range
@@ -132,7 +133,8 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
     # 9. figures, at the solved frames (issue 20 moves them onto the delivered curves)
     t0 = time.perf_counter()
     kin = target.kinematics()
-    distance, count, marker = _solved_figures(kin, q, contacts, markers)
+    distance, count = contact_distance_per_frame(kin, q, contacts)
+    marker = marker_error_per_frame(kin, q, markers)
     timings["figures"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - start
     counts = run_counts(reports)
@@ -165,10 +167,17 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
 def check_inputs(clip: Clip, source: Rig, target: Rig, annotations, config: RetargetConfig) -> int:
     """Raise InputError on inputs that cannot give a result; return the control-point count.
     Checks: both rigs (``Rig.validate``: limits that hold the rest pose, closed surface, ...),
-    the annotations' mesh signatures against the rigs' surfaces, and a clip long enough for
+    the clip's hand mesh against the source rig's surface, the annotations' mesh signatures
+    against the rigs' surfaces, and a clip long enough for
     the spline (>= 4 frames and >= ``fit.control_points`` when fixed)."""
     source.validate(source=f"source rig {source.name!r}")
     target.validate(source=f"target rig {target.name!r}")
+    if clip.hand_vertices.shape[1] != source.surface.n_vertices or not np.array_equal(clip.hand_faces,
+                                                                                      source.surface.faces):
+        raise InputError(f"the clip's hand mesh ({clip.hand_vertices.shape[1]} vertices, {len(clip.hand_faces)} "
+                         f"faces) is not the source rig {source.name!r}'s surface ({source.surface.n_vertices} "
+                         f"vertices, {len(source.surface.faces)} faces): give the rig the clip was made with as the "
+                         "source rig", source="clip", element="source_rig")
     annotations.check_meshes(source.surface.faces, source.surface.n_vertices, target.surface.faces,
                              target.surface.n_vertices, source="annotations")
     fixed = config.fit.control_points
@@ -327,21 +336,3 @@ def _commit() -> str | None:
         return None
     return out.stdout.strip() or None
 
-
-def _solved_figures(kin, q, contacts, markers):  # TODO(me): evaluate.metrics once there
-    n_frames = len(q)
-    distance, marker = np.full(n_frames, np.nan), np.full(n_frames, np.nan)
-    count = np.array([contacts.count(f) for f in range(n_frames)], dtype=np.int64)
-    marker_binding = kin.bind(SurfacePoints(markers.target_faces, markers.target_barycentric)) \
-        if len(markers.pair_target) else None
-    weight = markers.pair_weight / markers.pair_weight.sum() if marker_binding is not None else None
-    for f in range(n_frames):
-        pose = kin.pose(q[f])
-        if count[f]:
-            points = contacts.frame(f)[0]
-            distance[f] = 1000.0 * np.median(np.linalg.norm(kin.points(pose, kin.bind(points)) - contacts.surface_points(f),
-                                                        axis=1))
-        if marker_binding is not None:
-            x = kin.points(pose, marker_binding)[markers.pair_target]
-            marker[f] = 1000.0 * float(weight @ np.linalg.norm(x - markers.source_positions[f], axis=1))
-    return distance, count, marker
