@@ -275,6 +275,7 @@ class HAND_RETARGET_OT_submit(_Op, bpy.types.Operator):
             overrides = json.loads(s.overrides) if s.overrides.strip() else {}
             if not isinstance(overrides, dict):
                 raise ValueError("overrides must be a JSON object")
+            frames = frame_range(s)
             export_and_upload(context, arm, mesh)
             client = jobs.make_client(context)
             ann = client.upload_bytes("annotations", json.dumps(doc).encode("utf-8"), f"{arm.name}.json")
@@ -282,7 +283,7 @@ class HAND_RETARGET_OT_submit(_Op, bpy.types.Operator):
             clip = self.upload_clip(client, s)
             source = client.upload("rig", bpy.path.abspath(s.source_rig_path))["id"] if s.source_rig_path else None
             job = client.submit(clip=clip, rig=arm.hand_retarget.rig_id, annotations=ann["id"], source_rig=source,
-                                preset=s.preset, overrides=overrides, evaluate=s.evaluate,
+                                preset=s.preset, overrides=overrides, evaluate=s.evaluate, frames=frames,
                                 idempotency_key=uuid.uuid4().hex)
         except (annotations.AnnotationError, rig_export.RigExportError) + ERRORS as err:
             return self.fail(err)
@@ -326,8 +327,19 @@ class HAND_RETARGET_OT_cancel(_Op, bpy.types.Operator):
         return {'FINISHED'}
 
 
+def frame_range(s):
+    """The scene settings' clip frame range as [first, end) for the job request, or None."""
+    if not s.use_frame_range:
+        return None
+    if s.frame_end <= s.frame_first:
+        raise ValueError(f"the frame range {s.frame_first}:{s.frame_end} is empty: End must be after First")
+    return [int(s.frame_first), int(s.frame_end)]
+
+
 def import_result(context, arm, job_id: str, *, scene=None, baked=None, with_object=None, start_frame=None) -> dict:
-    """Fetch a succeeded job's result and put it on ``arm`` (and the object beside it)."""
+    """Fetch a succeeded job's result and put it on ``arm`` (and the object beside it). A job
+    that retargeted a frame range [first, end) lands at ``start_frame + first``, where those
+    frames of the clip are."""
     scene = scene or context.scene
     s = scene.hand_retarget
     baked = s.baked if baked is None else baked
@@ -335,6 +347,7 @@ def import_result(context, arm, job_id: str, *, scene=None, baked=None, with_obj
     start_frame = s.start_frame if start_frame is None else start_frame
     client = jobs.make_client(context)
     doc = json.loads(client.artifact(job_id, "result.json"))
+    start_frame += int((doc.get("frames") or [0])[0])
     mpu = arm.hand_retarget.meters_per_unit
     if not arm.hand_retarget.rig_file:  # never exported here: the same rule as the export
         mpu = rig_export.meters_per_unit(context, arm)

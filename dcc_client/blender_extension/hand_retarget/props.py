@@ -67,6 +67,10 @@ class HR_SceneSettings(bpy.types.PropertyGroup):
                                                ('paper', "Paper", "The paper's settings")], default='default')
     overrides: StringProperty(name="Overrides", default="",
                               description='Config overrides as JSON, e.g. {"solver.maxeval": 50}')
+    use_frame_range: BoolProperty(name="Frame range", default=False,
+                                  description="Retarget only part of the clip (GRAB sequences are long)")
+    frame_first: IntProperty(name="First", default=0, min=0, description="First clip frame to retarget")
+    frame_end: IntProperty(name="End", default=120, min=1, description="Clip frame after the last one to retarget")
     evaluate: BoolProperty(name="Evaluate", default=True, description="Let the service compute quality metrics")
     auto_import: BoolProperty(name="Import when done", default=False)
     baked: BoolProperty(name="Baked", default=False, description="One key per frame instead of the spline keys")

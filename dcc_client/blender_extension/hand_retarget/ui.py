@@ -83,6 +83,12 @@ class HAND_RETARGET_PT_panel(bpy.types.Panel):
         row.prop(s, "evaluate")
         box.prop(s, "overrides")
         row = box.row(align=True)
+        row.prop(s, "use_frame_range")
+        sub = row.row(align=True)
+        sub.enabled = s.use_frame_range
+        sub.prop(s, "frame_first")
+        sub.prop(s, "frame_end")
+        row = box.row(align=True)
         row.operator("hand_retarget.submit", icon='PLAY')
         row.operator("hand_retarget.cancel", text="", icon='CANCEL')
         box.prop(s, "auto_import")
