@@ -15,8 +15,8 @@ from retarget_core.clip.demo import (
     source_rig,
     world_sdf,
 )
-from retarget_core.clip.grasp import euler_xyz_from_matrix, root_transform
 from retarget_core.pairing import pair_contacts
+from retarget_core.rig.anatomy import euler_xyz_from_matrix, root_transform
 
 TIME_SCALE = 0.12
 

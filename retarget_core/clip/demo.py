@@ -18,20 +18,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from ..mesh.implicit import rounded_box
-from ..mesh.surface_points import closest_surface_points
+from ..rig.anatomy import euler_xyz_from_matrix, hand_fingers, root_transform, set_root_transform, source_markers
 from ..rig.demo_hands import demo_hand
 from ..rig.model import Rig
 from .format import Clip
-from .grasp import (
-    close_fingers,
-    euler_xyz_from_matrix,
-    frame_from_directions,
-    hand_fingers,
-    palm_center,
-    place_palm,
-    root_transform,
-    set_root_transform,
-)
+from .grasp import close_fingers, frame_from_directions, palm_center, place_palm
 from .objects import DemoObject, make_object
 
 FPS = 120.0
@@ -58,41 +49,6 @@ def contact_code(joint_name: str) -> int:
 def source_rig(resolution: float = SOURCE_RESOLUTION) -> Rig:
     """The rig every demo clip is made with."""
     return demo_hand("source_human", resolution=resolution)
-
-
-# ---- source markers ---------------------------------------------------------------------------
-def source_markers(rig: Rig) -> tuple[list[str], np.ndarray, np.ndarray]:
-    """The paper's 25 marker names placed on a generated hand by its geometry (rest pose):
-    <Finger>Base/Middle/Tip on the back of the finger over its first, second and third joints,
-    <Finger>Fingertip at the end of the finger, BackIndex/BackRing on the back of the palm,
-    WristLeft (thumb side) / WristRight at the sides of the wrist, PalmRoot on the palm near
-    the wrist. Returns (names, faces (M,), barycentric (M, 3)); fingers the hand lacks are skipped."""
-    kin = rig.kinematics()
-    world = kin.bind_world
-    targets: dict[str, np.ndarray] = {}
-    reach = 0.03
-    for finger in hand_fingers(rig):
-        title = finger.name.capitalize()
-        frames = [world[j] for j in finger.joints]
-        back = frames[0][:3, 2]
-        for label, k in (("Base", 0), ("Middle", 1), ("Tip", 2)):
-            if k < len(frames):
-                targets[f"{title}{label}"] = frames[k][:3, 3] + back * reach
-        tip_vertices = rig.surface.vertices[finger.link_vertices[-1]]
-        along = frames[-1][:3, 1]
-        targets[f"{title}Fingertip"] = tip_vertices[np.argmax(tip_vertices @ along)] + along * 0.005
-    wrist = world[rig.joint_index("wrist")] if "wrist" in rig.joint_names else world[0]
-    origin, x_axis, y_axis, z_axis = wrist[:3, 3], wrist[:3, 0], wrist[:3, 1], wrist[:3, 2]
-    for label, finger in (("BackIndex", "index1"), ("BackRing", "ring1")):
-        if finger in rig.joint_names:
-            mid = 0.5 * (origin + world[rig.joint_index(finger)][:3, 3])
-            targets[label] = mid + z_axis * reach
-    targets["WristLeft"] = origin - x_axis * 0.06 + y_axis * 0.005
-    targets["WristRight"] = origin + x_axis * 0.06 + y_axis * 0.005
-    targets["PalmRoot"] = origin + y_axis * 0.02 - z_axis * reach
-    names = list(targets)
-    points = closest_surface_points(rig.surface.vertices, rig.surface.faces, np.array([targets[n] for n in names]))
-    return names, points.faces, points.barycentric
 
 
 # ---- timeline ------------------------------------------------------------------------------

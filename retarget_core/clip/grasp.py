@@ -9,53 +9,18 @@ distance functions in world coordinates (negative inside).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 
 from ..mesh.surface_points import SurfacePoints
+from ..rig.anatomy import hand_fingers, palm_vertices, root_transform, set_root_transform
 from ..rig.model import Rig
 
 Sdf = Callable[[np.ndarray], np.ndarray]
 
-FINGER_NAMES = ("thumb", "index", "middle", "ring", "pinky")
 
-
-# ---- the free root as a rigid transform -------------------------------------------------------
-def euler_xyz_from_matrix(rotation: np.ndarray) -> np.ndarray:
-    """Angles (a, b, c) with rotation = Rx(a) @ Ry(b) @ Rz(c) (the root's DOF order); at gimbal
-    lock (b = +-90 degrees) c is set to 0."""
-    r = np.asarray(rotation, dtype=np.float64)
-    sb = np.clip(r[0, 2], -1.0, 1.0)
-    b = np.arcsin(sb)
-    if abs(sb) < 1.0 - 1e-9:
-        a = np.arctan2(-r[1, 2], r[2, 2])
-        c = np.arctan2(-r[0, 1], r[0, 0])
-    else:  # Rx(a) Ry(+-pi/2): only a +- c is defined; take c = 0
-        a = np.arctan2(r[2, 1], r[1, 1])
-        b = np.copysign(np.pi / 2, sb)
-        c = 0.0
-    return np.array([a, b, c])
-
-
-def set_root_transform(rig: Rig, q: np.ndarray, transform: np.ndarray) -> np.ndarray:
-    """A copy of q whose six root DOFs put the root joint at ``transform`` (4, 4), world.
-    Assumes the free root of :func:`retarget_core.rig.model.free_root` with an identity rest."""
-    q = np.array(q, dtype=np.float64)
-    names = rig.dof_names[:6]
-    if names != ["root_tx", "root_ty", "root_tz", "root_rx", "root_ry", "root_rz"]:
-        raise ValueError(f"rig {rig.name!r} does not start with the standard free root DOFs")
-    q[0:3] = transform[:3, 3]
-    q[3:6] = euler_xyz_from_matrix(transform[:3, :3])
-    return q
-
-
-def root_transform(rig: Rig, q: np.ndarray) -> np.ndarray:
-    """(4, 4) world transform of the root joint at q."""
-    return rig.kinematics().pose(q).world[0]
-
-
+# ---- hand frames ------------------------------------------------------------------------------
 def frame_from_directions(palm_direction, finger_direction) -> np.ndarray:
     """Hand-frame rotation (3, 3) whose -Z (the palm normal) points along ``palm_direction``
     and whose +Y (the fingers) points along ``finger_direction`` (orthogonalised)."""
@@ -67,50 +32,7 @@ def frame_from_directions(palm_direction, finger_direction) -> np.ndarray:
     return np.column_stack([np.cross(y, z), y, z])
 
 
-# ---- fingers -----------------------------------------------------------------------------------
-@dataclass
-class Finger:
-    """One finger chain: joint indices, their flex DOF indices, and the surface vertices each
-    joint's link owns (vertex ids whose largest skin weight is that joint)."""
-
-    name: str
-    joints: list[int]
-    flex_dofs: list[int]
-    link_vertices: list[np.ndarray]
-    closing_rate: np.ndarray = field(default_factory=lambda: np.ones(0))
-
-
-def hand_fingers(rig: Rig) -> list[Finger]:
-    """The fingers of a generated hand, in FINGER_NAMES order."""
-    dense = rig.surface.dense_weights(rig.n_joints)
-    owner = dense.argmax(axis=1)
-    fingers = []
-    for name in FINGER_NAMES:
-        joints, flex = [], []
-        k = 1
-        while True:
-            jname = f"{name}{k}"
-            if jname not in rig.joint_names:
-                break
-            j = rig.joint_index(jname)
-            joints.append(j)
-            flex.append(rig.dof_index(f"{jname}_flex") if f"{jname}_flex" in rig.dof_names else -1)
-            k += 1
-        if joints:
-            rate = np.linspace(0.8, 1.1, len(joints)) if name != "thumb" else np.linspace(0.7, 1.0, len(joints))
-            fingers.append(Finger(name, joints, flex, [np.nonzero(owner == j)[0] for j in joints], rate))
-    return fingers
-
-
-def palm_vertices(rig: Rig) -> np.ndarray:
-    """Ids of surface vertices owned by the palm joint ("wrist", else the root) on the palm side
-    (normal within 45 degrees of -Z in the hand frame)."""
-    dense = rig.surface.dense_weights(rig.n_joints)
-    palm_joint = rig.joint_index("wrist") if "wrist" in rig.joint_names else 0
-    normals = rig.surface.vertex_normals()
-    return np.nonzero((dense.argmax(axis=1) == palm_joint) & (normals[:, 2] < -0.7))[0]
-
-
+# ---- palm --------------------------------------------------------------------------------------
 def palm_center(rig: Rig) -> np.ndarray:
     """(3,) centre of the palm surface at rest, hand frame."""
     return rig.surface.vertices[palm_vertices(rig)].mean(axis=0)

@@ -2,7 +2,7 @@
 
 MANO: the 25 single-point markers the paper's own runs place on fixed vertex ids of the right
 MANO hand (778 vertices). Generated hands: the same names placed by the hand's geometry (see
-:func:`retarget_core.clip.demo.source_markers`)."""
+:func:`retarget_core.rig.anatomy.source_markers`)."""
 
 from __future__ import annotations
 

@@ -14,10 +14,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..clip.demo import source_markers
-from ..clip.grasp import FINGER_NAMES, hand_fingers
 from ..errors import InputError
 from ..mesh.surface_points import closest_surface_points
+from ..rig.anatomy import FINGER_NAMES, hand_fingers, source_markers
 from ..rig.model import Rig
 from .annotations import (
     Annotations,

@@ -10,7 +10,7 @@ Conventions (so that imported F-curves equal the DOF curves exactly):
   values are the ``rotation_euler`` channels (radians).
 - The core's solver seeds the hand with a free root named ``root_tx, root_ty, root_tz,
   root_rx, root_ry, root_rz`` (that order) at an identity rest transform
-  (retarget_core/clip/grasp.py ``set_root_transform``). So the root bone must sit at the
+  (retarget_core/rig/anatomy.py ``set_root_transform``). So the root bone must sit at the
   armature origin with identity rest orientation (pointing +Y, roll 0; the "Add Root Bone"
   operator makes one), gets those six DOFs whatever its name, and is keyed in Euler mode ZYX
   (``R_x @ R_y @ R_z``). A locked root channel is kept with limits of +-1e-6.
