@@ -5,12 +5,14 @@ rebuilt and replaced, and the files hold plain arrays only."""
 import dataclasses
 import time
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from retarget_core.clip.demo import source_rig
 from retarget_core.errors import InputError
+from retarget_core.execute import Executor
 from retarget_core.mesh.surface_points import SurfacePoints
 from retarget_core.rig.demo_hands import demo_hand
 from retarget_core.solve.config import load_config
@@ -203,13 +205,21 @@ def test_unwritable_cache_folder_only_costs_the_saving(hands, built, tmp_path):
     assert get_atlas(*surfaces(source, target), annotations, cache_dir=blocker / "cache") is atlas
 
 
-def test_config_key():
-    assert load_config(None, "default").atlas_cache == ""
-    assert load_config(None, "default", {"atlas_cache": "/tmp/atlases"}).atlas_cache == "/tmp/atlases"
-    with pytest.raises(InputError, match="atlas_cache"):
-        load_config(None, "default", {"atlas_cache": 3})
-    with pytest.raises(InputError, match="atlas_cache"):
-        load_config(None, "default", {"atlas_cache": "a\0b"})
+def test_executor_option():
+    """The cache folder is how a run executes, not what it computes: an Executor option now
+    (formerly the run configuration's ``atlas_cache`` key, which is refused, naming it)."""
+    assert Executor().cache_dir is None and Executor().describe()["atlas_cache"] == ""
+    assert Executor(atlas_cache="/tmp/atlases").cache_dir == Path("/tmp/atlases")
+    assert Executor(atlas_cache="/tmp/atlases").describe()["atlas_cache"] == "/tmp/atlases"
+    with pytest.raises(InputError, match="--atlas-cache") as info:
+        load_config(None, "default", {"atlas_cache": "/tmp/atlases"})
+    assert info.value.element == "atlas_cache"
+    with pytest.raises(InputError, match="atlas_cache") as info:
+        Executor(atlas_cache=3)
+    assert info.value.element == "executor.atlas_cache"
+    with pytest.raises(InputError, match="atlas_cache") as info:
+        Executor(atlas_cache="a\0b")
+    assert info.value.element == "executor.atlas_cache"
 
 
 def test_prune_keeps_the_most_recently_used_files_within_the_budget(tmp_path):

@@ -1,16 +1,20 @@
 """The contact-free baselines: their objectives' gradients and the pipeline running them."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from retarget_core.clip.demo import build_demo_timeline, clip_from_timeline, source_rig
 from retarget_core.errors import InputError
+from retarget_core.execute import Executor
+from retarget_core.inputs import RunInputs
 from retarget_core.pairing.dense import pair_contacts
+from retarget_core.pipeline import retarget
 from retarget_core.solve.baselines import KEYVECTOR_ETA1, KeyvectorObjective, keyvector_pairs
 from retarget_core.solve.config import RetargetConfig
-from retarget_core.solve.pipeline import Problem, solve_trajectory
+from retarget_core.solve.problem import Problem, method_objective
 from retarget_core.solve.targets import contact_targets, marker_targets
-import dataclasses
 from retarget_core.transfer.clip_transfer import transfer_clip
 from retarget_core.transfer.propose import propose_annotations
 
@@ -44,7 +48,7 @@ def _fd(fun, q, h=1e-6):
 @pytest.mark.parametrize("method", ["fingertips", "keyvectors"])
 def test_baseline_gradient_and_residual_form(setup, method):
     problem = _problem(setup, method)
-    objective = problem.finger_objective()
+    objective = method_objective(problem, "fingers")
     f = int(np.argmax(np.diff(problem.contacts.frame_offsets)))
     objective.set_frame(problem.frame_data(f))
     q = setup[1].dof_values[f] + np.random.default_rng(4).normal(scale=0.1, size=problem.rig.n_dofs)
@@ -70,7 +74,7 @@ def test_keyvector_sets_and_pinch_projection(setup):
                                    "RingFingertip", "PinkyFingertip"])
     assert sets.count(0) == 5 and sets.count(1) == 4 and sets.count(2) == 6
     problem = _problem(setup, "keyvectors")
-    objective = problem.finger_objective()
+    objective = method_objective(problem, "fingers")
     assert isinstance(objective, KeyvectorObjective)
     data = problem.frame_data(0)
     markers = data.markers.copy()
@@ -94,19 +98,19 @@ def test_baseline_without_tip_markers_is_an_input_error(setup):
     cfg = RetargetConfig.preset("default")
     cfg.method = "keyvectors"
     with pytest.raises(InputError, match="Fingertip"):
-        solve_trajectory(clip, rig, rig, reduced, cfg, pairs=pairs)
+        retarget(RunInputs.of(clip, rig, rig, reduced), cfg, pairs=pairs)
 
 
 def test_baselines_keep_the_root_of_the_root_pass_and_solve_the_fingers(setup):
     rig, clip, annotations, pairs, _ = setup
     cfg = RetargetConfig.preset("default")
-    cfg.workers = 1
-    cfg.passes.filter = cfg.passes.refine = False
+    cfg.passes.filter = cfg.passes.refine = cfg.passes.fit = False  # the root and full passes only
     root = np.array([d.joint == 0 for d in rig.dofs])
     runs = {}
     for method, full in (("contacts", False), ("contacts", True), ("fingertips", True), ("keyvectors", True)):
         cfg.method, cfg.passes.full = method, full
-        runs[method, full] = solve_trajectory(clip, rig, rig, annotations, cfg, pairs=pairs).q
+        runs[method, full] = retarget(RunInputs.of(clip, rig, rig, annotations), cfg, Executor(workers=1),
+                                      pairs=pairs).q
     root_pass = runs["contacts", False]
     for method in ("fingertips", "keyvectors"):
         q = runs[method, True]

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from retarget_core.errors import InputError
+from retarget_core.execute import Executor
 from retarget_core.refine import (
     acceleration_violations,
     interpolate_violations,
@@ -38,7 +39,9 @@ def test_presets_load():
     assert paper.refinement.e_acc_angular_si == pytest.approx(math.radians(500.0))
     assert paper.refinement.e_acc_linear_si == pytest.approx(5.0)
     assert paper.refinement.max_iterations == 20
-    assert paper.workers >= 1
+    # how a run executes (workers, Dask scheduler, atlas cache) is the Executor's, not the run
+    # configuration's: the presets no longer carry it
+    assert not {"workers", "dask_scheduler", "atlas_cache"} & set(paper.to_dict())
     default = RetargetConfig.preset("default")
     assert default.solver.gradient == "analytic"
     # the paper's weights; only the beyond-the-paper root gauge differs
@@ -58,7 +61,6 @@ def test_presets_load():
 def test_toml_override_applies(tmp_path):
     p = tmp_path / "run.toml"
     p.write_text(
-        "workers = 3\n"
         "[weights]\nlambda_j = 20\nlambda_p = 0.5\n"
         "[solver]\nmaxeval = 40\n"
         "[refinement]\ne_acc_angular = 250.0\n"
@@ -66,7 +68,6 @@ def test_toml_override_applies(tmp_path):
         "[passes]\nfilter = false\n"
     )
     cfg = load_config(p, preset="paper")
-    assert cfg.workers == 3
     assert cfg.weights.lambda_j == 20.0 and isinstance(cfg.weights.lambda_j, float)
     assert cfg.weights.lambda_p == 0.5
     assert cfg.weights.lambda_m == 1.0  # untouched keys keep the preset value
@@ -118,20 +119,51 @@ def test_bad_override_names_the_key():
         load_config(None, overrides={"weights": {"lambda_m": -0.1}})
 
 
-def test_dask_scheduler_key(tmp_path):
-    assert RetargetConfig.preset("paper").dask_scheduler == ""  # the local pool by default
+# The executor settings left the run configuration (they never change the result): an old TOML
+# file or override that still sets one is refused, naming the executor option that replaces it.
+# Formerly these tests read workers / dask_scheduler / atlas_cache back from the config.
+EXECUTOR_OPTIONS = {"workers": "--workers", "dask_scheduler": "--dask-scheduler", "atlas_cache": "--atlas-cache"}
+
+
+@pytest.mark.parametrize("key, toml", [("workers", "workers = 3\n"),
+                                       ("dask_scheduler", 'dask_scheduler = "tcp://10.0.0.5:8786"\n'),
+                                       ("atlas_cache", 'atlas_cache = "/tmp/atlases"\n')])
+def test_executor_keys_in_a_toml_file_name_the_executor_option(tmp_path, key, toml):
     p = tmp_path / "run.toml"
-    p.write_text('dask_scheduler = "tcp://10.0.0.5:8786"\n')
-    cfg = load_config(p)
-    assert cfg.dask_scheduler == "tcp://10.0.0.5:8786" and cfg.to_dict()["dask_scheduler"] == cfg.dask_scheduler
+    p.write_text(toml + "[solver]\nmaxeval = 40\n")
+    with pytest.raises(InputError) as info:
+        load_config(p)
+    assert info.value.element == key
+    assert str(p) in str(info.value)
+    assert EXECUTOR_OPTIONS[key] in str(info.value) and "executor" in str(info.value)
+
+
+@pytest.mark.parametrize("key, value", [("workers", 2), ("dask_scheduler", "tcp://127.0.0.1:8786"),
+                                        ("atlas_cache", "/tmp/atlases")])
+def test_executor_keys_in_overrides_name_the_executor_option(key, value):
+    for overrides in ({key: value}, {key: value, "solver.maxeval": 7}):
+        with pytest.raises(InputError) as info:
+            load_config(None, overrides=overrides)
+        assert info.value.element == key
+        assert EXECUTOR_OPTIONS[key] in str(info.value) and "executor" in str(info.value)
+
+
+def test_executor_validates_its_options():
+    assert Executor().dask_scheduler == "" and Executor().workers == 1  # in-process by default
     for good in ("tcp://127.0.0.1:1", "tcp://dask-scheduler.internal:65535", "tcp://[::1]:8786", ""):
-        assert load_config(None, overrides={"dask_scheduler": good}).dask_scheduler == good
+        assert Executor(dask_scheduler=good).dask_scheduler == good
+        assert Executor(dask_scheduler=good).describe()["dask_scheduler"] == good
     for bad in ("127.0.0.1:8786", "tcp://host", "tcp://host:0", "tcp://host:70000", "http://host:8786",
                 "tcp://host:8786/x", "tcp://ho st:8786", 8786):
         with pytest.raises(InputError) as info:
-            load_config(None, overrides={"dask_scheduler": bad})
-        assert info.value.element == "dask_scheduler", bad
-        assert "dask_scheduler" in str(info.value)
+            Executor(dask_scheduler=bad)
+        assert info.value.element == "executor.dask_scheduler", bad
+        assert "executor.dask_scheduler" in str(info.value)
+    for bad in (0, -1, 1.5, True, "2"):
+        with pytest.raises(InputError) as info:
+            Executor(workers=bad)
+        assert info.value.element == "executor.workers", bad
+    assert Executor(workers=3).describe()["workers"] == 3
 
 
 def test_missing_and_malformed_file(tmp_path):

@@ -281,7 +281,7 @@ def test_curve_read_back_from_usd(usd_result):
 
 def _result_doc(curves, fps=30.0):
     """A result.json document as RetargetResult.to_dict / write produce it."""
-    from retarget_core.retarget import RetargetResult
+    from retarget_core.result import RetargetResult
 
     n, d = 5, len(curves)
     res = RetargetResult(
@@ -314,8 +314,12 @@ def test_curves_from_result_json_errors():
     doc = _result_doc(curves)
     with pytest.raises(ValueError, match="format"):
         curves_from_result_json({**doc, "format": "other"})
+    # result.json is at version 2 now (RESULT_VERSION; it gained unused_settings, frames and
+    # provenance), so the version a reader must refuse is the next one
+    from retarget_core.result import RESULT_VERSION
+
     with pytest.raises(ValueError, match="version"):
-        curves_from_result_json({**doc, "version": 2})
+        curves_from_result_json({**doc, "version": RESULT_VERSION + 1})
     with pytest.raises(ValueError, match="fit pass was off"):
         curves_from_result_json({**doc, "curves": None})
     with pytest.raises(ValueError, match="one per DOF"):

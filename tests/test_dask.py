@@ -1,6 +1,6 @@
-"""Frame chunks on a Dask ``distributed`` cluster (``dask_scheduler``): real scheduler and worker
-processes on 127.0.0.1. The cluster gives the same trajectory as the local path, survives a
-worker killed mid-run, and an unreachable scheduler is an input error."""
+"""Frame chunks on a Dask ``distributed`` cluster (``Executor(dask_scheduler=...)``): real
+scheduler and worker processes on 127.0.0.1. The cluster gives the same trajectory as the local
+path, survives a worker killed mid-run, and an unreachable scheduler is an input error."""
 
 import os
 import time
@@ -8,13 +8,15 @@ import time
 import numpy as np
 import pytest
 
+from retarget_core import execute
 from retarget_core.clip.demo import make_demo_clip, source_rig
 from retarget_core.errors import InputError
+from retarget_core.execute import Executor
+from retarget_core.inputs import RunInputs
 from retarget_core.pairing.dense import pair_contacts
+from retarget_core.pipeline import retarget
 from retarget_core.rig.demo_hands import demo_hand
-from retarget_core.solve import pipeline
 from retarget_core.solve.config import load_config
-from retarget_core.solve.pipeline import solve_trajectory
 from retarget_core.transfer.propose import propose_annotations
 
 distributed = pytest.importorskip("distributed")
@@ -22,9 +24,11 @@ distributed = pytest.importorskip("distributed")
 from dask_cluster import Cluster, free_port  # noqa: E402
 
 RES = 0.004
-# few evaluations, a short refinement: fast, not accurate. workers = 1 on both paths: it also
-# sets how the root-only pass is cut into sequences, so it must match for equal results.
-FAST = {"solver.maxeval": 15, "solver.root_maxeval": 10, "refinement.max_iterations": 2, "workers": 1}
+# few evaluations, a short refinement: fast, not accurate. No worker count here: it is the
+# executor's (not the run configuration's), and the root-only pass is cut into fixed 64-frame
+# runs (pipeline.ROOT_SEGMENT_FRAMES) whatever the worker count, so the local run (one process)
+# and the cluster run give equal results without matching it.
+FAST = {"solver.maxeval": 15, "solver.root_maxeval": 10, "refinement.max_iterations": 2}
 N_WORKERS = 2
 
 
@@ -47,9 +51,11 @@ def setup(dask_cluster):
     annotations = propose_annotations(source, target)
     pairs = pair_contacts(clip)
 
-    def run(progress=None, **overrides):
-        config = load_config(None, "default", dict(FAST, **overrides))
-        return solve_trajectory(clip, source, target, annotations, config, progress=progress, pairs=pairs)
+    inputs = RunInputs.of(clip, source, target, annotations)
+    config = load_config(None, "default", FAST)
+
+    def run(progress=None, dask_scheduler=""):
+        return retarget(inputs, config, Executor(dask_scheduler=dask_scheduler, progress=progress), pairs=pairs)
 
     return dict(run=run, n_frames=clip.n_frames, local=run())
 
@@ -71,9 +77,17 @@ def _assert_same_run(got, expected):
     # the process a chunk runs in change nothing
     np.testing.assert_array_equal(got.q, expected.q)
     np.testing.assert_array_equal(got.unresolved, expected.unresolved)
+    got_passes, expected_passes = got.counts["passes"], expected.counts["passes"]
     for name in ("root", "full", "filter"):
-        assert got.reports[name].failed == [] and expected.reports[name].failed == []
-        assert got.reports[name].evaluations == expected.reports[name].evaluations, name
+        assert got_passes[name]["failed"] == [] and expected_passes[name]["failed"] == []
+        assert got_passes[name]["evaluations"] == expected_passes[name]["evaluations"], name
+    for c_got, c_expected in zip(got.curves, expected.curves, strict=True):  # the fit of equal q is equal
+        np.testing.assert_array_equal(c_got.coeffs, c_expected.coeffs)
+        np.testing.assert_array_equal(c_got.knots, c_expected.knots)
+
+
+#: The stages that solve frames and report chunk by chunk as chunks complete.
+FRAME_STAGES = ("root pass", "full pass", "filter re-solve", "refinement")
 
 
 def _checked_progress(calls):
@@ -82,14 +96,17 @@ def _checked_progress(calls):
     for stage, done, total in calls:
         by_stage.setdefault((stage, total), []).append(done)
     for (stage, total), done in by_stage.items():
-        assert done == sorted(done) and 0 < done[0] and done[-1] <= total, stage
+        assert done == sorted(done) and 0 <= done[0] and done[-1] <= total, stage
+        # the frame stages report a finished chunk each time; the executor now also announces
+        # the other stages of the whole run (transfer, spline fit) with a (stage, 0, 1) start
+        assert done[0] > 0 if stage in FRAME_STAGES else done[0] == 0, (stage, done)
     return by_stage
 
 
 def _cached_runs(client) -> dict:
     """Worker address -> the runs (tokens) whose solver objects its one task thread holds."""
-    # a lambda travels by value; pipeline is imported by name on the worker
-    return {w: client.submit(lambda: list(getattr(pipeline._DASK_LOCAL, "states", {})), workers=[w],
+    # a lambda travels by value; execute is imported by name on the worker
+    return {w: client.submit(lambda: list(getattr(execute._DASK_LOCAL, "states", {})), workers=[w],
                              pure=False).result()
             for w in client.nthreads()}
 
@@ -103,6 +120,7 @@ def test_cluster_gives_the_local_trajectory(setup, client, dask_cluster):
     by_stage = _checked_progress(calls)
     assert by_stage["root pass", n][-1] == n
     # chunk by chunk as they complete: the 46 frames of the full pass in 11 chunks of 4 and one of 2
+    # (execute.FrameRunner.solve: max(4, 46 // (2 cluster threads * 8) + 1) = 4 frames a chunk)
     assert len(by_stage["full pass", n]) == 12 and by_stage["full pass", n][-1] == n
     # both workers solved chunks, each with solver objects built for this run and kept for it
     new = {w: [t for t in tokens if t not in before.get(w, [])] for w, tokens in _cached_runs(client).items()}
@@ -143,10 +161,10 @@ def test_a_worker_killed_mid_run_changes_nothing(setup, client, dask_cluster):
 
 
 def test_unreachable_scheduler_is_an_input_error(setup, monkeypatch):
-    monkeypatch.setattr(pipeline, "DASK_CONNECT_TIMEOUT", 2.0)
+    monkeypatch.setattr(execute, "DASK_CONNECT_TIMEOUT", 2.0)
     address = f"tcp://127.0.0.1:{free_port()}"  # nothing listens there
     t0 = time.monotonic()
     with pytest.raises(InputError, match="dask_scheduler") as err:
         setup["run"](dask_scheduler=address)
     assert time.monotonic() - t0 < 15.0
-    assert err.value.element == "dask_scheduler" and address in str(err.value)
+    assert err.value.element == "executor.dask_scheduler" and address in str(err.value)

@@ -1,17 +1,22 @@
 """Per-frame objective, its analytic gradients, the frame solver and the identity retarget."""
 
+import re
+
 import numpy as np
 import pytest
 
 from retarget_core.clip.demo import build_demo_timeline, clip_from_timeline, source_rig
+from retarget_core.execute import Executor
 from retarget_core.fit import fit_trajectory
 from retarget_core.fit.splines import evaluate_curves
+from retarget_core.inputs import RunInputs
 from retarget_core.mesh.surface_points import SurfacePoints
 from retarget_core.pairing.dense import pair_contacts
+from retarget_core.pipeline import retarget
 from retarget_core.solve.config import RetargetConfig
 from retarget_core.solve.frame_solver import gauss_newton_warm_start, solve_frame
 from retarget_core.solve.objective import FrameData
-from retarget_core.solve.pipeline import Problem, solve_trajectory
+from retarget_core.solve.problem import Problem, build_solver_state, method_objective, solve_frames
 from retarget_core.solve.targets import contact_targets, marker_targets
 from retarget_core.transfer.annotations import resolve_points
 from retarget_core.transfer.clip_transfer import transfer_clip
@@ -61,7 +66,7 @@ TERMS = {
 @pytest.mark.parametrize("term", sorted(TERMS))
 def test_each_term_gradient_matches_central_differences(setup, term):
     problem = _problem(setup, **TERMS[term])
-    objective = problem.objective()
+    objective = method_objective(problem, "root")
     f = _busiest_frame(problem)
     objective.set_frame(problem.frame_data(f))
     rng = np.random.default_rng(3)
@@ -76,7 +81,7 @@ def test_each_term_gradient_matches_central_differences(setup, term):
 
 def test_table_term_gradient_with_the_hand_pushed_into_the_table(setup):
     problem = _problem(setup, lambda_m=0.0, lambda_c=0.0, lambda_j=0.0, lambda_p=0.0)
-    objective = problem.objective()
+    objective = method_objective(problem, "root")
     objective.set_frame(problem.frame_data(0))
     q = setup[1].dof_values[0].copy()
     table_top = problem.table_pose[2, 3] + problem.table_half_extents[2]
@@ -91,7 +96,7 @@ def test_table_term_gradient_with_the_hand_pushed_into_the_table(setup):
 
 def test_residual_form_equals_objective_and_its_jacobian_matches(setup):
     problem = _problem(setup, lambda_t=0.0, lambda_p=0.0)
-    objective = problem.objective()
+    objective = method_objective(problem, "root")
     f = _busiest_frame(problem)
     objective.set_frame(problem.frame_data(f))
     q = setup[1].dof_values[f] + np.random.default_rng(5).normal(scale=0.05, size=problem.rig.n_dofs)
@@ -106,7 +111,7 @@ def test_normal_equations_and_residual_cost_equal_the_residual_form(setup, dista
     """What the warm start uses: (sum r^2, J^T r, J^T J) summed per term without forming J, and
     the Jacobian-free sum r^2 of a trial step, against the stacked residuals and Jacobian."""
     problem = _problem(setup, marker_distance=distance, lambda_t=0.0, lambda_p=0.0)
-    objective = problem.objective()
+    objective = method_objective(problem, "root")
     f = _busiest_frame(problem)
     objective.set_frame(problem.frame_data(f))
     objective.set_seed(setup[1].dof_values[f])
@@ -125,7 +130,7 @@ def test_normal_equations_and_residual_cost_equal_the_residual_form(setup, dista
 @pytest.mark.parametrize("distance", ["squared", "huber"])
 def test_marker_term_gradient_and_residual_form_for_each_distance(setup, distance):
     problem = _problem(setup, marker_distance=distance, lambda_c=0.0, lambda_t=0.0, lambda_j=0.0, lambda_p=0.0)
-    objective = problem.objective()
+    objective = method_objective(problem, "root")
     f = _busiest_frame(problem)
     objective.set_frame(problem.frame_data(f))
     q = setup[1].dof_values[f] + np.random.default_rng(11).normal(scale=0.08, size=problem.rig.n_dofs)
@@ -144,13 +149,13 @@ def test_marker_penalty_known_values(setup):
     16. Near zero both are d^2; far off the Huber pull (d rho / d d) tends to 2 delta = 6
     while the squared one grows as 2 d."""
     d2 = np.array([0.0, 16.0, 1e6, 1e-6])
-    huber = _problem(setup, marker_distance="huber").objective()
+    huber = method_objective(_problem(setup, marker_distance="huber"), "root")
     huber.marker_delta = 3.0
     rho, slope = huber._marker_penalty(d2)
     assert np.allclose(rho[:2], [0.0, 12.0])
     assert np.isclose(rho[3], 1e-6, rtol=1e-6) and np.isclose(slope[0], 1.0)
     assert np.isclose(2 * np.sqrt(d2[2]) * slope[2], 6.0, rtol=1e-5)  # d rho / d d = 2 d slope
-    rho, slope = _problem(setup, marker_distance="squared").objective()._marker_penalty(d2)
+    rho, slope = method_objective(_problem(setup, marker_distance="squared"), "root")._marker_penalty(d2)
     assert np.allclose(rho, d2) and np.allclose(slope, 1.0)
 
 
@@ -158,7 +163,7 @@ def test_frame_solve_from_rest_reaches_the_capture(setup):
     """Markers and contacts of a captured frame, seeded at rest fingers and the true root: the
     warm-started solve recovers the finger pose; MMA alone at the same cap does worse."""
     problem = _problem(setup, lambda_p=0.0)
-    objective = problem.objective()
+    objective = method_objective(problem, "root")
     rig, clip = problem.rig, setup[1]
     f = _busiest_frame(problem)
     objective.set_frame(problem.frame_data(f))
@@ -178,7 +183,7 @@ def test_frame_solve_from_rest_reaches_the_capture(setup):
 
 def test_warm_start_respects_bounds_and_never_increases_the_cost(setup):
     problem = _problem(setup, lambda_t=0.0, lambda_p=0.0)
-    objective = problem.objective()
+    objective = method_objective(problem, "root")
     rig = problem.rig
     objective.set_frame(problem.frame_data(_busiest_frame(problem)))
     upper = rig.upper.copy()
@@ -195,7 +200,7 @@ def test_warm_start_respects_bounds_and_never_increases_the_cost(setup):
 
 def test_forward_difference_mode_agrees_with_analytic(setup):
     problem = _problem(setup, lambda_p=0.0)
-    objective = problem.objective()
+    objective = method_objective(problem, "root")
     rig, clip = problem.rig, setup[1]
     f = _busiest_frame(problem)
     objective.set_frame(problem.frame_data(f))
@@ -213,7 +218,7 @@ def test_forward_difference_mode_agrees_with_analytic(setup):
 
 def test_failed_frame_is_reported_not_zero(setup):
     problem = _problem(setup, lambda_p=0.0)
-    objective = problem.objective()
+    objective = method_objective(problem, "root")
     rig = problem.rig
     data = problem.frame_data(0)
     objective.set_frame(FrameData(np.full_like(data.markers, np.nan), data.contacts, data.object_points,
@@ -231,8 +236,8 @@ def test_identity_retarget_recovers_the_capture(setup):
     solved trajectory and for the fitted splines."""
     rig, clip, annotations, pairs, _ = setup
     cfg = RetargetConfig.preset("default")
-    cfg.workers = 2
-    traj = solve_trajectory(clip, rig, rig, annotations, cfg, pairs=pairs)
+    cfg.passes.fit = False  # every pass up to the fit (the spline is fitted below, 45 control points)
+    traj = retarget(RunInputs.of(clip, rig, rig, annotations), cfg, Executor(workers=2), pairs=pairs)
     times = np.arange(clip.n_frames) / clip.fps
     # the clip runs at 0.15 of the demo's duration: a whole pick and place in about a second, so
     # the spline needs more control points per second than a real-speed capture
@@ -255,7 +260,7 @@ def test_identity_retarget_recovers_the_capture(setup):
         # worst fingertip per frame: RMS over contact frames under 2 mm, median under 1 mm
         assert np.sqrt(np.mean(np.square(tip_err))) < 0.002, tip_err
         assert np.median(tip_err) < 0.001, tip_err
-    assert not traj.reports["full"].failed
+    assert traj.counts["passes"]["full"]["failed"] == [] and traj.curves is None
 
 
 def test_scale_finger_markers_keeps_the_source_proportions_and_stretches_the_witch(setup):
@@ -317,12 +322,47 @@ def test_frame_solvers_run_one_blas_thread(setup):
     instead of 44 s)."""
     from threadpoolctl import threadpool_info, threadpool_limits
 
-    from retarget_core.solve.pipeline import _init_worker
-
     with threadpool_limits(limits=2):
         before = [pool["num_threads"] for pool in threadpool_info()]
-        _init_worker(_problem(setup), {})
+        build_solver_state(_problem(setup))  # what every pool worker, Dask thread and in-process run does
         after = [pool["num_threads"] for pool in threadpool_info()]
     if not before or max(before) < 2:
         pytest.skip("a single-core machine: BLAS runs one thread anyway")
     assert after == [1] * len(after)
+
+
+def test_programming_errors_propagate_numerical_failures_are_reported(setup):
+    """Only numerical failures make a "failed frame" (reported, the seed kept); a programming
+    error inside a frame solve (a TypeError from the objective) propagates and fails the run."""
+    problem = _problem(setup, lambda_p=0.0)
+    rig = problem.rig
+    seed = setup[1].dof_values[0]
+
+    def raising(error):
+        def value_and_grad(q, want_grad=True):
+            raise error
+        return value_and_grad
+
+    common = dict(maxeval=20, xtol_rel=1e-4)
+    for stage_error in (TypeError("unsupported operand type(s)"), IndexError("index 99 is out of bounds")):
+        objective = method_objective(problem, "root")
+        objective.set_frame(problem.frame_data(0))
+        objective.value_and_grad = raising(stage_error)
+        with pytest.raises(type(stage_error), match=re.escape(str(stage_error))):
+            solve_frame(objective, seed, rig.lower, rig.upper, np.ones(rig.n_dofs, bool), **common)
+
+    objective = method_objective(problem, "root")
+    objective.set_frame(problem.frame_data(0))
+    objective.value_and_grad = raising(RuntimeError("nlopt failure in frame"))
+    sol = solve_frame(objective, seed, rig.lower, rig.upper, np.ones(rig.n_dofs, bool), **common)
+    assert not sol.ok and "RuntimeError" in sol.error and "nlopt failure in frame" in sol.error
+    assert np.allclose(sol.q, seed)
+
+    # the same through the worker-side batch solve the passes use
+    state = build_solver_state(problem)
+    state["root"].value_and_grad = raising(RuntimeError("nlopt failure in frame"))
+    (f, q, _, error), = solve_frames(state, [0], [seed], "root")
+    assert f == 0 and "nlopt failure in frame" in error and np.allclose(q, np.clip(seed, rig.lower, rig.upper))
+    state["root"].value_and_grad = raising(TypeError("a bug"))
+    with pytest.raises(TypeError, match="a bug"):
+        solve_frames(state, [0], [seed], "root")
