@@ -30,7 +30,9 @@ from collections import namedtuple
 from collections.abc import Mapping
 
 RESULT_FORMAT = "handretarget.result"
-RESULT_VERSION = 1
+RESULT_VERSION = 2
+#: result.json versions this reader takes (2 added provenance, frames, unused_settings)
+RESULT_VERSIONS = (1, 2)
 # B-spline extrapolation (core / USD) -> Blender F-curve extrapolation
 EXTRAPOLATION_TO_BLENDER = {"held": "CONSTANT", "linear": "LINEAR"}
 
@@ -386,9 +388,9 @@ def curves_from_result_json(doc) -> dict:
             raise ValueError(f"result.json is not valid JSON: {exc}") from None
     if not isinstance(doc, Mapping) or doc.get("format") != RESULT_FORMAT:
         raise ValueError(f"not a {RESULT_FORMAT} document (field 'format')")
-    if doc.get("version") != RESULT_VERSION:
+    if doc.get("version") not in RESULT_VERSIONS:
         raise ValueError(f"unsupported result version {doc.get('version')!r} (field 'version'; "
-                         f"this reader knows {RESULT_VERSION})")
+                         f"this reader knows {', '.join(map(str, RESULT_VERSIONS))})")
     names, curves = doc.get("dof_names"), doc.get("curves")
     if not isinstance(names, list):
         raise ValueError("result has no list 'dof_names'")

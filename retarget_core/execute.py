@@ -67,8 +67,12 @@ class Executor:
             raise InputError(f"must be a positive integer, got {self.blas_threads!r}",
                              element="executor.blas_threads")
         check_dask_address(self.dask_scheduler, "executor.dask_scheduler")
-        if self.atlas_cache is not None and "\0" in str(self.atlas_cache):
-            raise InputError("a folder path must not contain a NUL character", element="executor.atlas_cache")
+        if self.atlas_cache is not None:
+            if not isinstance(self.atlas_cache, (str, os.PathLike)):
+                raise InputError(f"expected a folder path, got {type(self.atlas_cache).__name__} {self.atlas_cache!r}",
+                                 element="executor.atlas_cache")
+            if "\0" in str(self.atlas_cache):
+                raise InputError("a folder path must not contain a NUL character", element="executor.atlas_cache")
 
     def report(self, stage: str, done: int, total: int) -> None:
         if self.progress is not None:

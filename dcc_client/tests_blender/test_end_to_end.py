@@ -43,7 +43,7 @@ def retargeted(addon, service, inputs, work):
     jobs.drive(timeout=420)
     assert s.job_state == "succeeded", s.job_message
     assert not jobs.is_polling() and not bpy.app.timers.is_registered(jobs.poll_job)
-    assert arm.animation_data.action.name.startswith("HR_"), s.job_message
+    assert arm.animation_data is not None and arm.animation_data.action.name.startswith("HR_"), s.job_message
     s.auto_import = False
     folder = ext("ops").work_folder(s.job_id)
     return dict(arm=arm, mesh=mesh, job=s.job_id, layer=f"{folder}/animation.usda", settings=s)
@@ -180,6 +180,29 @@ def test_cancel(retargeted, inputs):
     assert 'FINISHED' in bpy.ops.hand_retarget.cancel()
     ext("jobs").drive(timeout=120)
     assert s.job_id == first and s.job_state == "cancelled"
+
+
+def test_frame_range(retargeted):
+    """A range of the clip goes to the job as its frames; the result lands where those clip frames
+    are (start frame + first); an empty range is refused before anything is uploaded."""
+    arm = retargeted["arm"]
+    s = bpy.context.scene.hand_retarget
+    s.use_frame_range, s.frame_first, s.frame_end = True, 6, 4
+    try:
+        with pytest.raises(RuntimeError, match="frame range 6:4 is empty"):  # End before First
+            bpy.ops.hand_retarget.submit()
+        s.frame_end = 30
+        s.auto_import = True
+        assert 'FINISHED' in bpy.ops.hand_retarget.submit()
+        ext("jobs").drive(timeout=420)
+        assert s.job_state == "succeeded", s.job_message
+    finally:
+        s.use_frame_range, s.auto_import = False, False
+    client = ext("jobs").make_client(bpy.context)
+    doc = json.loads(client.artifact(s.job_id, "result.json"))
+    assert doc["frames"] == [6, 30] and len(doc["times"]) == 24
+    keys = [k.co[0] for fc in _fcurves(arm) for k in fc.keyframe_points]
+    assert min(keys) == pytest.approx(s.start_frame + 6) and max(keys) == pytest.approx(s.start_frame + 6 + 23)
 
 
 def test_token_not_in_blend(retargeted, addon, work):

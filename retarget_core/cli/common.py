@@ -26,7 +26,7 @@ def _executor(args):
     """The executor of the command's options (--workers, --dask-scheduler, --atlas-cache)."""
     from ..execute import Executor, default_workers
 
-    return Executor(workers=args.workers or default_workers(), dask_scheduler=getattr(args, "dask_scheduler", "") or "",
+    return Executor(workers=default_workers() if args.workers is None else args.workers, dask_scheduler=getattr(args, "dask_scheduler", "") or "",
                     atlas_cache=getattr(args, "atlas_cache", None))
 
 

@@ -144,7 +144,7 @@ def run_compare(clip_path, rigs, out, *, annotations=None, workers=None, stride:
     source, source_entry = resolve_rig_source(clip_source_rig(clip))
     pairs = pair_contacts(clip)
     config = load_config(None, "default", overrides)
-    executor = Executor(workers=workers or default_workers())
+    executor = Executor(workers=default_workers() if workers is None else workers)
     folders = []
     for k, spec in enumerate(rigs):
         target, target_entry = resolve_rig_source(spec)

@@ -94,7 +94,7 @@ def run_grid(out, *, targets=None, clips=None, methods=METHODS, frames: int = 12
                     inputs = RunInputs.of(clip, source, target, annotations, clip=f"demo:{clip_name}[{frames}]",
                                           source_rig="demo:source_human", target_rig=f"demo:{hand}")
                     result = retarget(inputs, load_config(None, "default", {"method": method}),
-                                      Executor(workers=workers or default_workers()), pairs=clip_pairs)
+                                      Executor(workers=default_workers() if workers is None else workers), pairs=clip_pairs)
                     result.write(cell)
                     write_evaluation(cell, stride=stride)
                 except InputError as err:  # a cell that cannot run is reported in the table, not hidden
