@@ -31,7 +31,7 @@ from .mesh.surface_points import SurfacePoints
 from .pairing.dense import ContactPairs, pair_contacts
 from .refine.trajectory import lowpass_and_remove_peaks, refine_trajectory
 from .result import RetargetResult
-from .clip.grasp import set_root_transform  # TODO(me): rig.anatomy once moved
+from .rig.anatomy import set_root_transform
 from .rig.model import Rig
 from .solve.config import MIN_CONTROL_POINTS, RetargetConfig
 from .solve.problem import Problem, method_objective, unused_settings

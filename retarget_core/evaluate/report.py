@@ -1,6 +1,6 @@
 """``handretarget evaluate DIR``: the metrics of one retarget output, as metrics.json and plots.
 
-Reads what :meth:`~retarget_core.retarget.RetargetResult.write` left in DIR (result.json, the
+Reads what :meth:`~retarget_core.result.RetargetResult.write` left in DIR (result.json, the
 rig file it names, scene.npz), poses the target hand at the spline samples of every frame and
 measures: hand-object, self and table intersection (percent of the hand's volume), contact error
 and coverage, marker error (from result.json), smoothness and DOF limit violations.
@@ -62,7 +62,7 @@ def load_scene(path) -> Scene:
 def load_output(folder):
     """(RetargetResult, Rig, Scene) of a retarget output folder; clear errors for a missing or
     foreign file."""
-    from ..retarget import load_result
+    from ..result import load_result
     from ..rig.io import load_rig
 
     folder = Path(folder)
