@@ -19,7 +19,7 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import InputError
-from ..jsonio import to_jsonable  # also re-exported here for server/job_process.py (until it imports jsonio)
+from ..jsonio import to_jsonable
 from ..mesh.geometry import SURFACE_TOLERANCE_M
 from ..mesh.surface_points import SurfacePoints
 
