@@ -1,6 +1,10 @@
 """Hand Retarget core: contact-aware kinematic retargeting of hand-object manipulation.
 
-Pipeline stages live in their own subpackages (see DESIGN.md beside the repo):
+One run: ``retarget_core.pipeline.retarget(inputs, config, executor)`` with
+``inputs = retarget_core.inputs.load_inputs(clip, rig, annotations)`` (or ``RunInputs.of``),
+``config = retarget_core.solve.config.load_config(...)`` (what changes the result) and
+``executor = retarget_core.execute.Executor(workers=...)`` (how it runs). Pipeline stages live
+in their own subpackages (see DESIGN.md beside the repo):
 
 - ``retarget_core.rig``   target hand rigs: joint tree, DOFs with limits, skinning,
                           analytic kinematics and Jacobians, USD / URDF / MJCF I/O,
