@@ -119,10 +119,11 @@ class RunInputs:
     sources: dict = field(default_factory=dict)
 
     @classmethod
-    def of(cls, clip: Clip, source_rig: Rig, target_rig: Rig, annotations: Annotations, frames=None,
-           **sources) -> "RunInputs":
-        """Inputs already in memory; their sha256 is taken from their content. ``sources``:
-        optional {name: description} (e.g. ``target_rig="demo:witch@0.003"``)."""
+    def of(cls, clip: Clip, source_rig: Rig, target_rig: Rig, annotations: Annotations, frames=None, *,
+           names: dict | None = None) -> "RunInputs":
+        """Inputs already in memory; their sha256 is taken from their content. ``names``:
+        optional {input name: where it came from} (e.g. ``{"target_rig": "demo:witch@0.003"}``)."""
+        sources = names or {}
         described = {}
         for name, obj in (("clip", clip), ("source_rig", source_rig), ("target_rig", target_rig),
                           ("annotations", annotations)):

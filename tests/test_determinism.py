@@ -14,6 +14,7 @@ from retarget_core.inputs import RunInputs
 from retarget_core.pipeline import ROOT_SEGMENT_FRAMES, retarget
 from retarget_core.rig.demo_hands import demo_hand
 from retarget_core.solve.config import load_config
+from retarget_core.transfer import atlas
 from retarget_core.transfer.propose import propose_annotations
 
 RES = 0.004
@@ -35,7 +36,10 @@ def runs(inputs, tmp_path_factory):
     assert config.passes.root and config.passes.full and config.passes.refine
     out = {}
     for workers in (1, 2, 3):
+        # the atlas too is built by `workers` processes: build it afresh for every run
+        atlas._CACHE.clear()
         out[f"local {workers}"] = retarget(inputs, config, Executor(workers=workers))
+    atlas._CACHE.clear()
     from dask_cluster import Cluster
 
     cluster = Cluster(tmp_path_factory.mktemp("dask"))

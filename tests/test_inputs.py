@@ -84,3 +84,19 @@ def test_executor_refuses_bad_options(kwargs, element):
 def test_executor_describes_itself_without_the_progress_callback(tmp_path):
     ex = Executor(workers=3, atlas_cache=tmp_path, progress=print)
     assert ex.describe() == {"workers": 3, "dask_scheduler": "", "atlas_cache": str(tmp_path), "blas_threads": 1}
+
+
+def test_in_memory_inputs_record_their_names_and_content_hashes(demo_rigs):
+    from retarget_core.clip.demo import make_demo_clip
+    from retarget_core.inputs import RunInputs
+    from retarget_core.transfer.propose import propose_annotations
+
+    source, target = demo_rigs["source_human"], demo_rigs["human_alt"]
+    clip = make_demo_clip("box_pinch", time_scale=0.05, resolution=0.004, rig=source)
+    ann = propose_annotations(source, target)
+    inputs = RunInputs.of(clip, source, target, ann, frames=(0, 10), names={"target_rig": "demo:human_alt@0.004"})
+    sources = inputs.provenance()
+    assert set(sources) == {"clip", "source_rig", "target_rig", "annotations"}
+    assert sources["target_rig"] == {"sha256": content_sha256(target), "spec": "demo:human_alt@0.004"}
+    assert "spec" not in sources["clip"] and len(sources["clip"]["sha256"]) == 64
+    assert sources["source_rig"]["sha256"] != sources["target_rig"]["sha256"]

@@ -145,7 +145,7 @@ def run_retarget_benchmark(n_frames: int = 1000, target: str = "human_alt", work
     annotations = propose_annotations(source, target_rig)
     setup_seconds = time.perf_counter() - t0
     config = RetargetConfig.preset(preset)
-    inputs = RunInputs.of(clip, source, target_rig, annotations, target_rig=f"demo:{target}")
+    inputs = RunInputs.of(clip, source, target_rig, annotations, names={"target_rig": f"demo:{target}"})
     with PeakMemory() as memory:
         result = retarget(inputs, config, Executor(workers=int(workers)))
     speed = gradient_speedup(clip, source, target_rig, annotations, RetargetConfig.preset("paper"),

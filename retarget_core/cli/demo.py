@@ -91,8 +91,9 @@ def _retarget_demo(out: Path, resolution: float, time_scale: float) -> None:
     for name in DEMO_HANDS:
         print(f"-- {name}")
         inputs = RunInputs.of(clip, source, demo_hand(name, resolution=resolution),
-                              load_annotations(out / "annotations" / f"{name}.json"), clip=clip_path,
-                              source_rig=clip.source_rig, target_rig=f"demo:{name}@{resolution:g}")
+                              load_annotations(out / "annotations" / f"{name}.json"),
+                              names={"clip": str(clip_path), "source_rig": clip.source_rig,
+                                     "target_rig": f"demo:{name}@{resolution:g}"})
         result, _ = _run_retarget(inputs, config, Executor(workers=default_workers()), out / "retarget" / name,
                                   out / "rigs" / f"{name}.usda", pairs=pairs)
         s = result.summary

@@ -91,8 +91,8 @@ def run_grid(out, *, targets=None, clips=None, methods=METHODS, frames: int = 12
                 clip, clip_pairs = clip_window(clip_name)
                 t0 = time.perf_counter()
                 try:
-                    inputs = RunInputs.of(clip, source, target, annotations, clip=f"demo:{clip_name}[{frames}]",
-                                          source_rig="demo:source_human", target_rig=f"demo:{hand}")
+                    inputs = RunInputs.of(clip, source, target, annotations, names={"clip": f"demo:{clip_name}[{frames}]",
+                                                 "source_rig": "demo:source_human", "target_rig": f"demo:{hand}"})
                     result = retarget(inputs, load_config(None, "default", {"method": method}),
                                       Executor(workers=default_workers() if workers is None else workers), pairs=clip_pairs)
                     result.write(cell)
