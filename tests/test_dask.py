@@ -25,7 +25,7 @@ from dask_cluster import Cluster, free_port  # noqa: E402
 
 RES = 0.004
 # few evaluations, a short refinement: fast, not accurate. No worker count here: it is the
-# executor's (not the run configuration's), and the root-only pass is cut into fixed 64-frame
+# executor's (not the run configuration's), and the root-only pass is cut into fixed 60-frame
 # runs (pipeline.ROOT_SEGMENT_FRAMES) whatever the worker count, so the local run (one process)
 # and the cluster run give equal results without matching it.
 FAST = {"solver.maxeval": 15, "solver.root_maxeval": 10, "refinement.max_iterations": 2}

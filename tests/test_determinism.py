@@ -18,7 +18,7 @@ from retarget_core.transfer import atlas
 from retarget_core.transfer.propose import propose_annotations
 
 RES = 0.004
-FRAMES = 120  # more than one root-pass run of ROOT_SEGMENT_FRAMES, and not a multiple of 2 or 3 runs
+FRAMES = 130  # more than two root-pass runs of ROOT_SEGMENT_FRAMES (the last one short)
 TOLERANCE = 1e-9  # radians / metres
 
 
