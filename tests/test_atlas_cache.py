@@ -140,8 +140,9 @@ def test_other_annotations_or_options_give_another_key(hands, built, no_build):
 
 
 @pytest.mark.parametrize("damage", ["garbage", "truncated", "pickled", "other_version", "other_key", "wrong_shape"])
-def test_bad_cache_files_are_ignored(hands, built, tmp_path, damage, no_build):
-    """Each damaged file is not used (the build is asked for instead) and raises nothing else."""
+def test_bad_cache_files_are_ignored(hands, built, tmp_path, damage, no_build, caplog):
+    """Each damaged file is not used (the build is asked for instead), raises nothing else, is
+    reported as a warning naming it and is removed."""
     source, target, annotations = hands
     _, _, path, _ = built
     bad = tmp_path / path.name
@@ -161,8 +162,11 @@ def test_bad_cache_files_are_ignored(hands, built, tmp_path, damage, no_build):
             good["vertex_landmark"] = good["vertex_landmark"][:-1]
         with open(bad, "wb") as handle:
             np.savez(handle, **good)
-    with pytest.raises(BuildCalled):
+    with caplog.at_level("WARNING", logger=atlas_module.log.name), pytest.raises(BuildCalled):
         get_atlas(*surfaces(source, target), annotations, cache_dir=tmp_path)
+    warned = [r for r in caplog.records if r.levelname == "WARNING" and str(bad) in r.getMessage()]
+    assert warned and "corrupt atlas cache file" in warned[0].getMessage()
+    assert not bad.exists()
 
 
 def test_a_truncated_cache_file_is_rebuilt_and_replaced(hands, built, tmp_path, monkeypatch):
