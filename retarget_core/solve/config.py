@@ -40,6 +40,33 @@ keys mirror the dataclasses::
     [fit]
     control_points = 60     # replaces the preset's control_points_per_second
 
+Every numeric key has a lower and an upper bound (:data:`BOUNDS`; "(" excludes the low end):
+
+====================================== ================== ===================================
+key                                    allowed            unit
+====================================== ================== ===================================
+weights.* (every lambda)               [0, 1e6]
+solver.maxeval, solver.root_maxeval    [1, 10000]         objective evaluations per frame
+solver.xtol_rel, solver.ftol_rel       [0, 1]
+solver.fd_step                         (0, 1]
+solver.warm_start_iterations           [0, 200]           Gauss-Newton steps per frame
+markers.huber_width                    (0, 100]           cm
+refinement.e_acc_angular               (0, 1e7]           deg/s^2
+refinement.e_acc_linear                (0, 1e7]           cm/s^2
+refinement.max_iterations              [0, 200]           rounds
+refinement.patience                    [0, 200]           rounds
+refinement.lowpass_cutoff_hz           (0, 1000]          Hz
+refinement.lowpass_order               [1, 10]
+refinement.peak_threshold_angular      (0, 360]           deg
+refinement.peak_threshold_linear       (0, 1000]          cm
+refinement.peak_window                 [3, 101], odd      frames
+refinement.resolve_tolerance_angular   [0, 360]           deg
+refinement.resolve_tolerance_linear    [0, 1000]          cm
+fit.control_points                     [4, 10000]
+fit.control_points_per_second          (0, 120]           per second of clip
+sampling.*_sample_stride               [1, 1000]          vertices
+====================================== ================== ===================================
+
 Unknown keys, wrong types and out-of-range values raise :class:`~retarget_core.errors.InputError`
 whose ``element`` is the dotted key path (``"solver.maxevals: unknown key"``).
 
@@ -81,6 +108,7 @@ __all__ = [
     "Sampling",
     "SolverSettings",
     "Weights",
+    "BOUNDS",
     "load_config",
     "n_control_points",
 ]
@@ -97,6 +125,49 @@ MARKER_DISTANCES = ("squared", "huber")
 
 #: Smallest control-point count of a cubic B-spline.
 MIN_CONTROL_POINTS = 4
+
+#: The allowed range of every numeric field: {dotted key: (low, high, low excluded)}. Values are
+#: checked by :meth:`RetargetConfig.validate` (an out-of-range value is an InputError naming the
+#: key and this range). The upper bounds keep a run's work finite: each is far above what a run
+#: needs (the presets use 30-100 evaluations, 20 warm-start steps, 20 refinement rounds, order-4
+#: filters, 7-frame peak windows, 10 control points per second) and below what would make one
+#: frame, or the whole clip, take unbounded time or memory (an nlopt evaluation cap of 2^31 is
+#: not representable at all).
+BOUNDS: dict[str, tuple[float, float, bool]] = {
+    **{f"weights.{name}": (0.0, 1e6, False) for name in
+       ("lambda_m", "lambda_cd", "lambda_cn", "lambda_c", "lambda_t", "lambda_j", "lambda_p", "lambda_r")},
+    "solver.maxeval": (1, 10_000, False),
+    "solver.root_maxeval": (1, 10_000, False),
+    "solver.xtol_rel": (0.0, 1.0, False),
+    "solver.ftol_rel": (0.0, 1.0, False),
+    "solver.fd_step": (0.0, 1.0, True),
+    "solver.warm_start_iterations": (0, 200, False),
+    "markers.huber_width": (0.0, 100.0, True),              # cm
+    "refinement.e_acc_angular": (0.0, 1e7, True),           # deg/s^2
+    "refinement.e_acc_linear": (0.0, 1e7, True),            # cm/s^2
+    "refinement.max_iterations": (0, 200, False),
+    "refinement.patience": (0, 200, False),
+    "refinement.lowpass_cutoff_hz": (0.0, 1000.0, True),
+    "refinement.lowpass_order": (1, 10, False),
+    "refinement.peak_threshold_angular": (0.0, 360.0, True),  # deg
+    "refinement.peak_threshold_linear": (0.0, 1000.0, True),  # cm
+    "refinement.peak_window": (3, 101, False),                # odd
+    "refinement.resolve_tolerance_angular": (0.0, 360.0, False),
+    "refinement.resolve_tolerance_linear": (0.0, 1000.0, False),
+    "fit.control_points": (MIN_CONTROL_POINTS, 10_000, False),
+    "fit.control_points_per_second": (0.0, 120.0, True),
+    "sampling.table_sample_stride": (1, 1000, False),
+    "sampling.penetration_sample_stride": (1, 1000, False),
+}
+
+
+def _range_text(lo, hi, open_lo: bool) -> str:
+    """``[1, 10000]`` / ``(0, 1]``."""
+    def num(x) -> str:
+        return str(int(x)) if float(x).is_integer() else f"{x:g}"
+
+    return f"{'(' if open_lo else '['}{num(lo)}, {num(hi)}]"
+
 
 #: ``dask_scheduler`` values: ``tcp://HOST:PORT`` (HOST a name, an IPv4 address or a bracketed
 #: IPv6 address).
@@ -397,16 +468,14 @@ class RetargetConfig:
         def fail(msg: str, key: str):
             raise InputError(msg, source=source, element=key)
 
-        def positive(v, key: str) -> None:
-            if not math.isfinite(v) or v <= 0:
-                fail(f"must be positive, got {v!r}", key)
-
-        def non_negative(v, key: str) -> None:
-            if not math.isfinite(v) or v < 0:
-                fail(f"must be non-negative, got {v!r}", key)
-
-        for f in dataclasses.fields(self.weights):
-            non_negative(getattr(self.weights, f.name), f"weights.{f.name}")
+        for key, (lo, hi, open_lo) in BOUNDS.items():
+            section, _, name = key.partition(".")
+            obj = getattr(self, section)
+            v = getattr(obj, name)
+            if v is None:  # fit.control_points / control_points_per_second: the unused one
+                continue
+            if not math.isfinite(v) or v > hi or (v <= lo if open_lo else v < lo):
+                fail(f"must be in {_range_text(lo, hi, open_lo)}, got {v!r}", key)
         s = self.solver
         if s.algorithm not in SUPPORTED_ALGORITHMS:
             fail(f"unsupported algorithm {s.algorithm!r} (expected one of "
@@ -414,40 +483,17 @@ class RetargetConfig:
         if s.gradient not in GRADIENT_MODES:
             fail(f"must be one of {', '.join(GRADIENT_MODES)}, got {s.gradient!r}",
                  "solver.gradient")
-        positive(s.maxeval, "solver.maxeval")
-        positive(s.root_maxeval, "solver.root_maxeval")
-        non_negative(s.xtol_rel, "solver.xtol_rel")
-        non_negative(s.ftol_rel, "solver.ftol_rel")
-        positive(s.fd_step, "solver.fd_step")
         if self.markers.distance not in MARKER_DISTANCES:
             fail(f"must be one of {', '.join(MARKER_DISTANCES)}, got {self.markers.distance!r}",
                  "markers.distance")
-        positive(self.markers.huber_width, "markers.huber_width")
-        non_negative(s.warm_start_iterations, "solver.warm_start_iterations")
         r = self.refinement
-        positive(r.e_acc_angular, "refinement.e_acc_angular")
-        positive(r.e_acc_linear, "refinement.e_acc_linear")
-        non_negative(r.max_iterations, "refinement.max_iterations")
-        non_negative(r.patience, "refinement.patience")
-        positive(r.lowpass_cutoff_hz, "refinement.lowpass_cutoff_hz")
-        positive(r.lowpass_order, "refinement.lowpass_order")
-        positive(r.peak_threshold_angular, "refinement.peak_threshold_angular")
-        positive(r.peak_threshold_linear, "refinement.peak_threshold_linear")
-        if r.peak_window < 3 or r.peak_window % 2 == 0:
-            fail(f"must be an odd integer >= 3, got {r.peak_window!r}", "refinement.peak_window")
-        non_negative(r.resolve_tolerance_angular, "refinement.resolve_tolerance_angular")
-        non_negative(r.resolve_tolerance_linear, "refinement.resolve_tolerance_linear")
+        if r.peak_window % 2 == 0:
+            fail(f"must be an odd integer in {_range_text(*BOUNDS['refinement.peak_window'])}, "
+                 f"got {r.peak_window!r}", "refinement.peak_window")
         fit = self.fit
         if (fit.control_points is None) == (fit.control_points_per_second is None):
             fail("give exactly one of fit.control_points and fit.control_points_per_second",
                  "fit")
-        if fit.control_points is not None and fit.control_points < MIN_CONTROL_POINTS:
-            fail(f"must be >= {MIN_CONTROL_POINTS}, got {fit.control_points!r}",
-                 "fit.control_points")
-        if fit.control_points_per_second is not None:
-            positive(fit.control_points_per_second, "fit.control_points_per_second")
-        positive(self.sampling.table_sample_stride, "sampling.table_sample_stride")
-        positive(self.sampling.penetration_sample_stride, "sampling.penetration_sample_stride")
         if self.method not in METHODS:
             fail(f"must be one of {', '.join(METHODS)}, got {self.method!r}", "method")
 
