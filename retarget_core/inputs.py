@@ -10,6 +10,7 @@ stored inside an untrusted clip is never opened (give the source rig explicitly 
 from __future__ import annotations
 
 import hashlib
+import math
 import re
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
@@ -24,7 +25,8 @@ from .transfer.annotations import Annotations, load_annotations
 #: The demo hand the demonstration clips are made with, when a clip names no source rig.
 DEFAULT_SOURCE_RIG = "demo:source_human@0.004"
 #: Mesh cell sizes (m) a clip may ask its demo source hand to be built at: a clip is untrusted,
-#: and a tiny cell size would build an enormous hand.
+#: and a tiny cell size would build an enormous hand (the same range as every ``demo:NAME@R``,
+#: :data:`~retarget_core.rig.io.DEMO_RESOLUTION_RANGE`).
 CLIP_DEMO_RESOLUTIONS = (0.001, 0.02)
 
 
@@ -157,15 +159,20 @@ def clip_source_rig(clip: Clip) -> str:
                          "a demo hand (demo:NAME): give the rig the clip was made with explicitly "
                          "(--source-rig on the command line, source_rig in a job request)",
                          source="clip", element="source_rig")
-    _, _, res = spec.partition("@")
+    name, _, res = spec.partition("@")
     lo, hi = CLIP_DEMO_RESOLUTIONS
     try:
-        ok = not res or lo <= float(res) <= hi
+        value = float(res) if res else None
     except ValueError:
-        ok = False
-    if not ok:
+        value = float("nan")
+    if value is not None and not (math.isfinite(value) and lo <= value <= hi):
         raise InputError(f"the clip asks for its demo source hand at resolution {res!r}; a clip may ask for "
                          f"{lo:g} to {hi:g} m", source="clip", element="source_rig")
+    from .rig.demo_hands import DEMO_HANDS
+
+    if name[len("demo:"):] not in DEMO_HANDS:
+        raise InputError(f"the clip names an unknown demo hand {name[len('demo:'):]!r} (known: {', '.join(DEMO_HANDS)})",
+                         source="clip", element="source_rig")
     return spec
 
 

@@ -97,3 +97,46 @@ def test_toml_file_values_are_bounded(tmp_path):
     with pytest.raises(InputError, match=r"solver\.maxeval: must be in \[1, 10000\]") as err:
         load_config(p)
     assert err.value.source == str(p)
+
+
+# ---- a demo hand's resolution (issue 16, High: a clip's "demo:source_human@0.0007" took the job
+# process to 1.6 GB; Low: "@0" passed validation and failed as an internal error)
+
+@pytest.mark.parametrize("res", ["0", "0.0", "-0.004", "nan", "inf", "-inf", "0.0007", "0.0005", "0.021", "1", "x",
+                                 "1e-300"])
+def test_resolve_rig_refuses_a_demo_resolution_out_of_range(res):
+    from retarget_core.rig.io import resolve_rig
+
+    with pytest.raises(InputError, match="1 to 20 mm") as err:
+        resolve_rig(f"demo:source_human@{res}")
+    assert err.value.element == "rig"
+
+
+def test_resolve_rig_builds_within_range():
+    from retarget_core.rig.io import DEMO_RESOLUTION_RANGE, demo_resolution, resolve_rig
+
+    assert DEMO_RESOLUTION_RANGE == (0.001, 0.02)
+    assert demo_resolution("0.001") == 0.001 and demo_resolution("0.02") == 0.02
+    assert demo_resolution("") == 0.002
+    assert resolve_rig("demo:robot4@0.02").surface.n_vertices > 0
+
+
+@pytest.mark.parametrize("res", ["0", "0.0007", "nan", "-1", "inf"])
+def test_a_clip_may_not_choose_a_tiny_source_resolution(res):
+    import types
+
+    from retarget_core.inputs import clip_source_rig
+
+    with pytest.raises(InputError, match="resolution") as err:
+        clip_source_rig(types.SimpleNamespace(source_rig=f"demo:source_human@{res}"))
+    assert err.value.element == "source_rig"
+
+
+def test_a_clip_may_not_name_an_unknown_demo_hand():
+    import types
+
+    from retarget_core.inputs import clip_source_rig
+
+    with pytest.raises(InputError, match="unknown demo hand") as err:
+        clip_source_rig(types.SimpleNamespace(source_rig="demo:nobody@0.004"))
+    assert err.value.element == "source_rig"

@@ -48,9 +48,36 @@ def save_rig(rig: Rig, path) -> None:
     write_rig_usd(rig, path)
 
 
+#: Mesh cell sizes (m) a demo hand may be built at through ``demo:NAME@R``: [1 mm, 20 mm]. A
+#: spec may come from untrusted input (a clip's ``source_rig`` field), and the hand's size grows
+#: with the inverse cube of the cell (0.7 mm took 1.6 GB; 0 never ends).
+DEMO_RESOLUTION_RANGE = (0.001, 0.02)
+#: The cell size of ``demo:NAME`` without ``@R``.
+DEMO_DEFAULT_RESOLUTION = 0.002
+
+
+def demo_resolution(res: str, spec: str = "") -> float:
+    """The cell size of a ``demo:NAME@R`` spec's ``R`` ("" = the default): a finite number of
+    metres within :data:`DEMO_RESOLUTION_RANGE`, else InputError (element ``rig``)."""
+    import math
+
+    if not res:
+        return DEMO_DEFAULT_RESOLUTION
+    lo, hi = DEMO_RESOLUTION_RANGE
+    try:
+        resolution = float(res)
+    except ValueError:
+        resolution = float("nan")
+    if not (math.isfinite(resolution) and lo <= resolution <= hi):
+        raise InputError(f"bad resolution {res!r} in {spec!r}: a demo hand is built at {lo:g} to {hi:g} m "
+                         f"(1 to 20 mm cells)", element="rig")
+    return resolution
+
+
 def resolve_rig(spec: str, **load_options) -> Rig:
     """A rig from a file path, or a demo hand as ``demo:NAME`` or ``demo:NAME@RESOLUTION``
-    (metres; the clip format records its source rig this way, e.g. "demo:source_human@0.004")."""
+    (metres, within :data:`DEMO_RESOLUTION_RANGE`; the clip format records its source rig this
+    way, e.g. "demo:source_human@0.004")."""
     spec = str(spec)
     if spec.startswith("demo:"):
         from .demo_hands import DEMO_HANDS, demo_hand
@@ -58,9 +85,5 @@ def resolve_rig(spec: str, **load_options) -> Rig:
         name, _, res = spec[len("demo:"):].partition("@")
         if name not in DEMO_HANDS:
             raise InputError(f"unknown demo hand {name!r}; known: {', '.join(DEMO_HANDS)}", element="rig")
-        try:
-            resolution = float(res) if res else 0.002
-        except ValueError as err:
-            raise InputError(f"bad resolution {res!r} in {spec!r}", element="rig") from err
-        return demo_hand(name, resolution=resolution)
+        return demo_hand(name, resolution=demo_resolution(res, spec))
     return load_rig(spec, **load_options)
