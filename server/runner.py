@@ -1,6 +1,7 @@
 """Runs queued jobs, each in its own process, and keeps them durable.
 
-One thread in the service claims queued jobs oldest first (up to ``job_slots`` at once) and
+One thread in the service claims queued jobs round-robin across owners (up to ``job_slots`` at
+once; see :meth:`Store.claim_next_job`) and
 starts ``python -m server.job_process`` for each in a new process group, so a cancel or a
 restart can stop the job with every process of its pool. At start-up, jobs the store still
 calls ``running`` (the service was stopped or killed mid-job) get their leftover processes

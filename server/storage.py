@@ -334,11 +334,20 @@ class Store:
             return db.execute(q, args).rowcount == 1
 
     def claim_next_job(self) -> JobRow | None:
-        """The oldest queued job, marked running (attempts + 1), or None."""
+        """The next queued job, marked running (attempts + 1), or None. Slots are shared
+        round-robin across owners: first the owners with the fewest running jobs, among those
+        the owner whose last job started longest ago (never: first), and that owner's oldest
+        queued job. So an owner with one job running yields the next free slot to an owner
+        with none, however many jobs the first queued before."""
         with self.connect() as db:
             db.execute("BEGIN IMMEDIATE")
-            row = db.execute("SELECT id FROM jobs WHERE state = ? ORDER BY created LIMIT 1",
-                             (JobState.QUEUED.value,)).fetchone()
+            row = db.execute(
+                "SELECT q.id FROM jobs q "
+                "LEFT JOIN (SELECT owner, SUM(state = :running) AS running, MAX(started) AS last_start "
+                "           FROM jobs GROUP BY owner) o ON o.owner = q.owner "
+                "WHERE q.state = :queued "
+                "ORDER BY COALESCE(o.running, 0), COALESCE(o.last_start, 0), q.created, q.id LIMIT 1",
+                {"running": JobState.RUNNING.value, "queued": JobState.QUEUED.value}).fetchone()
             if row is None:
                 db.execute("COMMIT")
                 return None
