@@ -122,3 +122,108 @@ def test_slice_keeps_frames(tmp_path):
     part = small_clip(6).slice(2, 5)
     assert part.n_frames == 3 and part.dof_values.shape == (3, 2)
     part.validate()
+
+
+# ---- bounded reading (issue 16, High: "a 1.18 MB clip (an npz decompression bomb) took the server
+# from 311 MB to 1.5 GB"; Medium: malformed clips answered 500). Every hostile file is built here.
+
+def _npy(array=None, *, header=None, data=b"") -> bytes:
+    """An npy member: ``array`` as numpy writes it, or a hand-made ``header`` dict and ``data``."""
+    buf = io.BytesIO()
+    if array is not None:
+        np.lib.format.write_array(buf, np.asarray(array), allow_pickle=False)
+    else:
+        np.lib.format.write_array_header_1_0(buf, header)
+        buf.write(data)
+    return buf.getvalue()
+
+
+def _write_members(path, members: dict[str, bytes]) -> None:
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as z:
+        for name, payload in members.items():
+            z.writestr(name + ".npy", payload)
+
+
+def _clip_members(tmp_path) -> dict[str, bytes]:
+    small_clip().save(tmp_path / "good.npz")
+    with zipfile.ZipFile(tmp_path / "good.npz") as z:
+        return {n.removesuffix(".npy"): z.read(n) for n in z.namelist()}
+
+
+def test_a_decompression_bomb_is_refused_before_it_is_read(tmp_path, monkeypatch):
+    members = _clip_members(tmp_path)
+    members["hand_vertices"] = _npy(np.zeros((50, 20_000, 3), np.float32))  # 12 MB of zeros
+    path = tmp_path / "bomb.npz"
+    _write_members(path, members)
+    assert path.stat().st_size < 100_000
+    monkeypatch.setattr(np, "load", lambda *a, **k: pytest.fail("np.load reached"))
+    with pytest.raises(InputError, match="over the limit of 4000000 bytes") as err:
+        load_clip(path, max_bytes=4_000_000)
+    assert err.value.element == "hand_vertices"
+
+
+def test_a_header_declaring_a_huge_array_is_refused(tmp_path, monkeypatch):
+    members = _clip_members(tmp_path)
+    members["hand_vertices"] = _npy(header={"descr": "<f4", "fortran_order": False,
+                                            "shape": (1_000_000, 1_000_000, 3)}, data=b"\0" * 64)
+    path = tmp_path / "huge.npz"
+    _write_members(path, members)
+    monkeypatch.setattr(np, "load", lambda *a, **k: pytest.fail("np.load reached"))
+    with pytest.raises(InputError, match=r"declares an array of shape \(1000000, 1000000, 3\)") as err:
+        load_clip(path)
+    assert err.value.element == "hand_vertices"
+
+
+@pytest.mark.parametrize("field,value,text", [
+    ("fps", np.array([120.0, 60.0]), "single value"),
+    ("fps", np.array("fast"), "must be a number"),
+    ("version", np.array("one"), "must be an integer"),
+    ("version", np.array([1, 1]), "single value"),
+    ("hand_faces", np.array([["a", "b", "c"]]), "must be an integer"),
+    ("marker_names", np.array("A"), "1-d array"),
+    ("source_rig", np.array(5), "must be a string"),
+    ("format", np.array(["handretarget.clip"]), "single value"),
+])
+def test_malformed_fields_are_input_errors(tmp_path, field, value, text):
+    members = _clip_members(tmp_path)
+    members[field] = _npy(value)
+    path = tmp_path / "bad.npz"
+    _write_members(path, members)
+    with pytest.raises(InputError, match=text) as err:
+        load_clip(path)
+    assert err.value.element == field
+
+
+def test_a_malformed_header_is_an_input_error(tmp_path):
+    members = _clip_members(tmp_path)
+    members["fps"] = b"\x93NUMPY\x01\x00\x10\x00{'descr': 'zz'}  \n"
+    path = tmp_path / "bad.npz"
+    _write_members(path, members)
+    with pytest.raises(InputError, match="bad npy header") as err:
+        load_clip(path)
+    assert err.value.element == "fps"
+
+
+def test_a_flipped_byte_is_an_input_error(tmp_path):
+    path = tmp_path / "c.npz"
+    small_clip(40).save(path)
+    raw = bytearray(path.read_bytes())
+    with zipfile.ZipFile(path) as z:
+        info = z.getinfo("hand_vertices.npy")
+    start = info.header_offset + 30 + len(info.filename) + len(info.extra)
+    for k in range(start + 20, start + info.compress_size - 4, 37):  # several data bytes
+        raw[k] ^= 0xFF
+    path.write_bytes(bytes(raw))
+    with pytest.raises(InputError) as err:
+        load_clip(path)
+    assert err.value.element in ("hand_vertices", "")
+
+
+def test_the_default_limit_reads_ordinary_clips(tmp_path):
+    from retarget_core.clip.format import MAX_CLIP_BYTES, check_npz_members
+
+    assert MAX_CLIP_BYTES == 2 * 1024 ** 3
+    small_clip().save(tmp_path / "c.npz")
+    heads = check_npz_members(tmp_path / "c.npz")
+    assert heads["hand_vertices"][0] == (4, 42, 3)
+    assert load_clip(tmp_path / "c.npz", max_bytes=10**6).n_frames == 4

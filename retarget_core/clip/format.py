@@ -31,11 +31,18 @@ object_name          ()           e.g. "bottle"
 motion               ()           e.g. "pick_place"
 source               ()           provenance, e.g. "demo" or "grab:s1/apple_eat_1"
 ==================== ============ ===============================================================
+
+Reading is bounded: :func:`load_clip` first reads every member's npy header (never its data) and
+refuses, naming the member, a pickled dtype, a malformed header, a declared array larger than the
+member holds, a scalar field that is not a scalar of its kind (fps of shape (2,), version "one",
+string faces) and a clip whose members add up to more than ``max_bytes`` uncompressed
+(:data:`MAX_CLIP_BYTES`, 2 GiB, by default): a 1 MB upload can no longer decompress into gigabytes.
 """
 
 from __future__ import annotations
 
 import zipfile
+import zlib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
@@ -45,6 +52,10 @@ from ..errors import InputError
 from ..files import save_npz_atomic
 
 CLIP_FORMAT = "handretarget.clip"
+#: Default limit of a clip's uncompressed size (the sum of its members) in :func:`load_clip`.
+MAX_CLIP_BYTES = 2 * 1024 ** 3
+#: Largest npy header read (numpy's own default).
+_MAX_HEADER = 10_000
 CLIP_VERSION = 1
 
 #: GRAB's right-hand contact codes (22 = palm/hand, 41-55 = the 15 finger segments).
@@ -219,26 +230,107 @@ _REQUIRED = ("format", "version", "fps", "hand_faces", "hand_vertices", "object_
              "object_poses", "contact_labels")
 
 
-def load_clip(path, *, validate: bool = True) -> Clip:
-    """Read a clip .npz (never unpickling anything) and validate it."""
+#: What each field must be, checked from its npy header before it is read: (ndim or None for
+#: any, allowed dtype kinds). Unlisted members are ignored (never read).
+_FIELD_SPECS = {
+    "format": (0, "U"), "version": (0, "iu"), "fps": (0, "iuf"),
+    "hand_faces": (None, "iu"), "hand_vertices": (None, "iuf"), "object_vertices": (None, "iuf"),
+    "object_faces": (None, "iu"), "object_poses": (None, "iuf"), "contact_labels": (None, "biu"),
+    "table_pose": (None, "iuf"), "table_half_extents": (None, "iuf"),
+    "marker_names": (1, "U"), "marker_faces": (None, "iu"), "marker_barycentric": (None, "iuf"),
+    "dof_names": (1, "U"), "dof_values": (None, "iuf"),
+    "source_rig": (0, "U"), "object_name": (0, "U"), "motion": (0, "U"), "source": (0, "U"),
+}
+_KIND_NAMES = {"U": "a string", "iu": "an integer", "iuf": "a number", "biu": "an integer"}
+
+
+def check_npz_members(path, *, max_bytes: int = MAX_CLIP_BYTES, source: str = "") -> dict[str, tuple]:
+    """Read only the npy headers of the clip archive at ``path``: {field: (shape, dtype)}.
+    Raises InputError naming the member when a header is malformed or pickled, declares more
+    data than the member holds, does not match its field (:data:`_FIELD_SPECS`), or when the
+    members add up to more than ``max_bytes`` uncompressed (checked on the zip's own sizes
+    before any member is decompressed)."""
+    from numpy.lib import format as npformat
+
+    src = source or str(path)
+    try:
+        zf = zipfile.ZipFile(path)
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as err:
+        raise InputError(f"not a clip .npz file ({err})", source=src) from err
+    out = {}
+    with zf:
+        members = zf.infolist()
+        total = sum(info.file_size for info in members)
+        if total > max_bytes:
+            biggest = max(members, key=lambda info: info.file_size)
+            raise InputError(f"the clip decompresses to {total} bytes, over the limit of {max_bytes} bytes "
+                             f"(largest member: {biggest.file_size} bytes)", source=src,
+                             element=biggest.filename.removesuffix(".npy"))
+        declared_total = 0
+        for info in members:
+            name = info.filename.removesuffix(".npy")
+            if not info.filename.endswith(".npy") or name not in _FIELD_SPECS:
+                continue
+            try:
+                with zf.open(info) as fh:
+                    version = npformat.read_magic(fh)
+                    if version == (1, 0):
+                        shape, fortran, dtype = npformat.read_array_header_1_0(fh, max_header_size=_MAX_HEADER)
+                    elif version in ((2, 0), (3, 0)):
+                        shape, fortran, dtype = npformat.read_array_header_2_0(fh, max_header_size=_MAX_HEADER)
+                    else:
+                        raise ValueError(f"npy format version {version} is not supported")
+                    offset = fh.tell()
+            except (ValueError, TypeError, OverflowError, SyntaxError, EOFError, zipfile.BadZipFile, OSError,
+                    RuntimeError, NotImplementedError, zlib.error) as err:
+                raise InputError(f"not a readable array (bad npy header: {err})", source=src, element=name) from err
+            if dtype.hasobject:
+                raise InputError("field holds Python objects, which clips never do (it would need pickle)",
+                                 source=src, element=name)
+            count = 1
+            for n in shape:
+                count *= int(n)
+            declared = count * dtype.itemsize
+            declared_total += declared
+            if declared > info.file_size - offset:
+                raise InputError(f"the header declares an array of shape {shape} ({dtype}, {declared} bytes) but "
+                                 f"the member holds {info.file_size - offset} bytes", source=src, element=name)
+            if declared_total > max_bytes:
+                raise InputError(f"the clip's arrays add up to more than the limit of {max_bytes} bytes",
+                                 source=src, element=name)
+            ndim, kinds = _FIELD_SPECS[name]
+            if dtype.kind not in kinds:
+                raise InputError(f"must be {_KIND_NAMES[kinds]} array, got dtype {dtype}", source=src, element=name)
+            if ndim is not None and len(shape) != ndim:
+                what = "a single value (shape ())" if ndim == 0 else f"a {ndim}-d array"
+                raise InputError(f"must be {what}, got shape {shape}", source=src, element=name)
+            out[name] = (shape, dtype)
+    return out
+
+
+def load_clip(path, *, validate: bool = True, max_bytes: int = MAX_CLIP_BYTES) -> Clip:
+    """Read a clip .npz (never unpickling anything) and validate it. Every member's header is
+    checked first (:func:`check_npz_members`, at most ``max_bytes`` uncompressed)."""
     path = Path(path)
     src = str(path)
     if not path.is_file():
         raise InputError("no such file", source=src)
+    present = check_npz_members(path, max_bytes=max_bytes, source=src)
+    missing = [k for k in _REQUIRED if k not in present]
+    if missing:
+        raise InputError("required field is missing", source=src, element=missing[0])
     try:
         data = np.load(path, allow_pickle=False)
     except (zipfile.BadZipFile, OSError, ValueError, EOFError) as err:
         raise InputError(f"not a clip .npz file ({err})", source=src) from err
     with data:
-        missing = [k for k in _REQUIRED if k not in data.files]
-        if missing:
-            raise InputError("required field is missing", source=src, element=missing[0])
-
         def get(key):
             try:
                 return data[key]
             except ValueError as err:  # object arrays need pickle: refuse them
                 raise InputError(f"field holds Python objects, which clips never do ({err})", source=src, element=key) from err
+            except (zipfile.BadZipFile, OSError, EOFError, zlib.error) as err:  # a damaged member (bad CRC, truncated)
+                raise InputError(f"the member cannot be read ({err})", source=src, element=key) from err
 
         fmt = str(get("format"))
         if fmt != CLIP_FORMAT:
@@ -247,8 +339,11 @@ def load_clip(path, *, validate: bool = True) -> Clip:
         if version != CLIP_VERSION:
             raise InputError(f"clip version {version} is not supported (this build reads {CLIP_VERSION})", source=src, element="version")
 
+        def has(key):
+            return key in present
+
         def text(key):
-            return str(get(key)) if key in data.files else ""
+            return str(get(key)) if has(key) else ""
 
         clip = Clip(
             fps=float(get("fps")),
@@ -258,13 +353,13 @@ def load_clip(path, *, validate: bool = True) -> Clip:
             object_faces=get("object_faces").astype(np.int64),
             object_poses=get("object_poses").astype(np.float64),
             contact_labels=get("contact_labels"),
-            table_pose=get("table_pose") if "table_pose" in data.files else None,
-            table_half_extents=get("table_half_extents") if "table_half_extents" in data.files else None,
-            marker_names=[str(s) for s in get("marker_names")] if "marker_names" in data.files else [],
-            marker_faces=get("marker_faces").astype(np.int64) if "marker_faces" in data.files else None,
-            marker_barycentric=get("marker_barycentric") if "marker_barycentric" in data.files else None,
-            dof_names=[str(s) for s in get("dof_names")] if "dof_names" in data.files else [],
-            dof_values=get("dof_values") if "dof_values" in data.files else None,
+            table_pose=get("table_pose") if has("table_pose") else None,
+            table_half_extents=get("table_half_extents") if has("table_half_extents") else None,
+            marker_names=[str(s) for s in get("marker_names")] if has("marker_names") else [],
+            marker_faces=get("marker_faces").astype(np.int64) if has("marker_faces") else None,
+            marker_barycentric=get("marker_barycentric") if has("marker_barycentric") else None,
+            dof_names=[str(s) for s in get("dof_names")] if has("dof_names") else [],
+            dof_values=get("dof_values") if has("dof_values") else None,
             source_rig=text("source_rig"),
             object_name=text("object_name"),
             motion=text("motion"),
