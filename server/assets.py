@@ -1,6 +1,8 @@
 """Validating uploaded assets with the core's own readers, before anything is recorded.
 
-Kinds: ``rig`` (USD, or a zip of a URDF / MJCF robot hand with its meshes), ``annotations``
+Kinds: ``rig`` (one USD layer, a .usdz / zip USD package, or a zip of a URDF / MJCF robot hand
+with its meshes; every file a rig names must lie inside the upload, and what is stored is the
+rig as one self-contained USD layer), ``annotations``
 (JSON), ``clip`` (native npz, read with ``allow_pickle=False``) and ``file`` (raw inputs of the
 GRAB importer: a sequence, the user's MANO model, meshes; they are only ever opened by the
 restricted GRAB loader in :func:`import_grab_clip`).
@@ -21,6 +23,7 @@ from .schemas import AssetKind
 KINDS = get_args(AssetKind)
 FILE_SUFFIXES = (".npz", ".pkl", ".ply", ".obj", ".stl", ".off")
 ROBOT_SUFFIXES = (".urdf", ".xml", ".mjcf")
+USD_SUFFIXES = (".usd", ".usda", ".usdc")
 MAX_BUNDLE_MEMBERS = 2000
 
 
@@ -83,34 +86,52 @@ def validate_upload(kind: str, tmp: Path, filename: str, *, scratch: Path, bundl
         return path, suffix, {"suffix": suffix}
     if kind == "rig":
         from retarget_core.rig.io import load_rig, save_rig
+        from retarget_core.rig.usd_io import flatten_confined
 
         suffix = sniff_rig(head)
         if suffix != ".zip":
+            # One USD layer: it may compose no other layer (refused, naming the arc); other asset
+            # paths are dropped; the flattened layer is what is stored and what jobs open.
             path = tmp.rename(tmp.with_suffix(suffix))
-            return path, suffix, rig_info(_core(load_rig, path))
-        # A robot bundle: unpacked safely, imported (wrapper surface built once, here), and kept
-        # as the USD rig the jobs read, so every job sees the same surface the annotations name.
+            flat = scratch / f"rig{suffix}"
+            warnings = _core(lambda p: flatten_confined(p, flat), path, scratch=scratch)
+            info = rig_info(_core(lambda p: load_rig(p, confine_to=p), flat, scratch=scratch))
+            tmp.with_suffix(suffix).unlink(missing_ok=True)
+            return flat, suffix, info | ({"warnings": warnings} if warnings else {})
         folder = scratch / "bundle"
         entry = _unpack_bundle(tmp, folder, bundle_bytes)
-        rig = _core(load_rig, entry)
+        shown = entry.relative_to(folder).as_posix()
+        tmp.unlink()
+        if entry.suffix.lower() in USD_SUFFIXES:
+            # A .usdz / zip USD package: composed with every layer confined to the package.
+            flat = scratch / "rig.usdc"
+            warnings = _core(lambda p: flatten_confined(p, flat, confine_to=folder), entry, scratch=scratch)
+            info = rig_info(_core(lambda p: load_rig(p, confine_to=p), flat, scratch=scratch))
+            return flat, ".usdc", info | {"imported_from": shown} | ({"warnings": warnings} if warnings else {})
+        # A robot bundle: unpacked safely, imported with every file it names confined to the
+        # bundle (wrapper surface built once, here), and kept as the USD rig the jobs read, so
+        # every job sees the same surface the annotations name.
+        rig = _core(lambda p: load_rig(p, confine_to=folder), entry, scratch=scratch)
         usd = scratch / "rig.usda"
         save_rig(rig, usd)
-        info = rig_info(rig) | {"imported_from": str(entry.relative_to(folder))}
-        tmp.unlink()
-        return usd, ".usda", info
+        return usd, ".usda", rig_info(rig) | {"imported_from": shown}
     raise UploadError(f"unknown asset kind {kind!r} (known: {', '.join(KINDS)})")
 
 
-def _core(fn, path):
+def _core(fn, path, *, scratch: Path | None = None):
     try:
         return fn(path)
     except InputError as err:
-        raise UploadError(_without_path(str(err), path)) from err
+        raise UploadError(_without_path(str(err), path, scratch)) from err
 
 
-def _without_path(message: str, path: Path) -> str:
+def _without_path(message: str, path: Path, scratch: Path | None = None) -> str:
     """Core errors name the file; the client never sees the server's paths."""
-    return message.replace(str(path), path.suffix.lstrip(".") + " upload").replace(str(path.parent) + "/", "")
+    message = message.replace(str(path), path.suffix.lstrip(".") + " upload").replace(str(path.parent) + "/", "")
+    if scratch is not None:
+        for folder in sorted({str(scratch / "bundle"), str(scratch), str(scratch.resolve())}, key=len, reverse=True):
+            message = message.replace(folder + "/", "").replace(folder, "upload")
+    return message
 
 
 def _unpack_bundle(archive: Path, folder: Path, limit: int) -> Path:
@@ -145,9 +166,17 @@ def _unpack_bundle(archive: Path, folder: Path, limit: int) -> Path:
                      and len(p.relative_to(folder).parts) <= 2)
     if entries and any(p.suffix.lower() == ".urdf" for p in entries):
         entries = [p for p in entries if p.suffix.lower() == ".urdf"]
+    if not entries:  # a .usdz / zip USD package: its first entry, or its one top-level layer
+        first = next((PurePosixPath(m.filename) for m in members if not m.is_dir()), None)
+        if first is not None and first.suffix.lower() in USD_SUFFIXES:
+            return folder / first
+        entries = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in USD_SUFFIXES)
+        if len(entries) == 1:
+            return entries[0]
     if len(entries) != 1:
         names = ", ".join(str(p.relative_to(folder)) for p in entries) or "none"
-        raise UploadError(f"the rig zip must hold exactly one URDF or MJCF file at its top level (found: {names})")
+        raise UploadError("the rig zip must hold exactly one URDF or MJCF file at its top level, or be a USD "
+                          f"package (.usdz) whose first entry is its root layer (found: {names})")
     return entries[0]
 
 

@@ -12,29 +12,42 @@ URDF_SUFFIXES = (".urdf",)
 MJCF_SUFFIXES = (".xml", ".mjcf")
 
 
-def load_rig(path, *, wrapper_resolution: float = 0.002, root_body: str | None = None) -> Rig:
+def load_rig(path, *, wrapper_resolution: float = 0.002, root_body: str | None = None, confine_to=None) -> Rig:
     """Read a rig from USD, or import a robot hand from URDF or MJCF (which also builds its
-    closed wrapper surface at ``wrapper_resolution`` metres)."""
+    closed wrapper surface at ``wrapper_resolution`` metres).
+
+    ``confine_to``: a folder (e.g. an unpacked upload) that every file the rig refers to must
+    lie in (URDF/MJCF meshes and includes, USD sublayers, references and payloads); anything
+    outside raises InputError naming the element and the reference as written, and is never
+    opened. Errors then name files relative to that folder. None (the command line's
+    default): local files load as written."""
     path = Path(path)
+    shown = str(path)
+    if confine_to is not None:
+        from .robot_import import Confinement
+
+        conf = Confinement(confine_to)
+        path = conf.check_file(path, source=path.name, what="rig file")
+        shown = conf.shown(path)
     if not path.is_file():
-        raise InputError("no such file", source=str(path))
+        raise InputError("no such file", source=shown)
     suffix = path.suffix.lower()
     if suffix in USD_SUFFIXES:
         from .usd_io import read_rig_usd
 
-        return read_rig_usd(path)
+        return read_rig_usd(path, confine_to=confine_to)
     if suffix in URDF_SUFFIXES:
         from .robot_import import load_urdf
 
-        return load_urdf(path, wrapper_resolution=wrapper_resolution)
+        return load_urdf(path, wrapper_resolution=wrapper_resolution, confine_to=confine_to)
     if suffix in MJCF_SUFFIXES:
         from .robot_import import load_mjcf
 
-        return load_mjcf(path, root_body=root_body, wrapper_resolution=wrapper_resolution)
+        return load_mjcf(path, root_body=root_body, wrapper_resolution=wrapper_resolution, confine_to=confine_to)
     raise InputError(
         f"unknown rig file type {suffix!r}; expected one of "
         + ", ".join(USD_SUFFIXES + URDF_SUFFIXES + MJCF_SUFFIXES),
-        source=str(path),
+        source=shown,
     )
 
 

@@ -19,8 +19,9 @@ Choices specific to each format are described in :func:`load_urdf` and :func:`lo
 
 from __future__ import annotations
 
+import os
 import xml.etree.ElementTree as ET
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 
@@ -132,6 +133,78 @@ def _primitive(kind: str, size) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(m.vertices, float), np.asarray(m.faces, np.int64)
 
 
+
+# ---- confinement ---------------------------------------------------------------------------
+class Confinement:
+    """Every file a rig refers to must lie inside ``root`` (an unpacked upload).
+
+    Checks are lexical first: a reference that is absolute, or whose ``..`` climbs above the
+    root, is refused before anything is opened or stat-ed, so the refusal is the same whether
+    the file outside exists or not. A reference inside the root that resolves (through a
+    symbolic link) outside it is refused too. Errors name the file inside the root and the
+    reference as written, never a path of the host."""
+
+    def __init__(self, root):
+        self.root = Path(os.path.abspath(root))
+        self.real = Path(os.path.realpath(self.root))
+
+    def shown(self, path: Path) -> str:
+        """``path`` (inside the root) as the upload names it."""
+        try:
+            return Path(os.path.abspath(path)).relative_to(self.root).as_posix()
+        except ValueError:
+            return Path(path).name
+
+    def scrub(self, text: str) -> str:
+        """``text`` with the root's host paths removed."""
+        for r in sorted({str(self.real), str(self.root)}, key=len, reverse=True):
+            text = text.replace(r + os.sep, "").replace(r, ".")
+        return text
+
+    def _inside(self, p: Path, base: Path) -> bool:
+        return p == base or base in p.parents
+
+    def resolve(self, written: str, bases, *, source, element, what="file") -> Path:
+        """The path ``written`` names, relative to each of ``bases`` (absolute folders inside
+        the root); refused unless every interpretation stays inside the root. Returns the
+        first interpretation (not checked for existence)."""
+        if not written or "\\" in written or "\0" in written or PurePosixPath(written).is_absolute() or (
+                len(written) > 1 and written[1] == ":"):
+            self.refuse(written, source=source, element=element, what=what)
+        out = None
+        for base in bases:
+            cand = Path(os.path.normpath(os.path.join(base, written)))
+            if not self._inside(cand, self.root):
+                self.refuse(written, source=source, element=element, what=what)
+            # as normalised (what this module opens) and as joined (what MuJoCo opens)
+            for real in (os.path.realpath(cand), os.path.realpath(os.path.join(base, written))):
+                if not self._inside(Path(real), self.real):
+                    self.refuse(written, source=source, element=element, what=what)
+            out = cand if out is None else out
+        return out
+
+    def check_file(self, path: Path, *, source, element=None, what="file") -> Path:
+        """``path`` itself (the file being loaded) must lie inside the root."""
+        p = Path(os.path.abspath(path))
+        if not self._inside(p, self.root) or not self._inside(Path(os.path.realpath(p)), self.real):
+            raise InputError(f"{what} is outside the folder it is confined to", source=p.name, element=element)
+        return p
+
+    @staticmethod
+    def refuse(written: str, *, source, element, what="file"):
+        raise InputError(
+            f"{what} {written!r} is outside the rig's own folder (absolute paths, file:// URIs, '..' above the "
+            "folder, package:// outside it and links out of it are refused); it was not opened",
+            source=source, element=element)
+
+
+def _no_doctype(path: Path, *, source):
+    """A confined XML file may not declare a DTD (entities could hide what the parsers see)."""
+    head = path.read_bytes()
+    if b"<!DOCTYPE" in head.upper() or b"<!ENTITY" in head.upper():
+        raise InputError("XML with a DOCTYPE or entity declarations is not accepted", source=source)
+
+
 # ---- URDF ----------------------------------------------------------------------------------
 def _resolve_mesh_path(filename: str, urdf_dir: Path) -> Path | None:
     """Absolute path of a URDF mesh reference, or None when no candidate exists.
@@ -156,34 +229,91 @@ def _resolve_mesh_path(filename: str, urdf_dir: Path) -> Path | None:
     return p if p.is_file() else None
 
 
-def _load_mesh_file(path: Path, *, source, element) -> tuple[np.ndarray, np.ndarray]:
+def _resolve_mesh_confined(filename: str, urdf_dir: Path, conf: Confinement, *, source, element) -> Path | None:
+    """:func:`_resolve_mesh_path` inside ``conf.root`` only: ``package://PKG/rest`` is looked
+    for from the URDF's folder up to the root (``<folder>/PKG/rest``, ``<folder>/rest`` when
+    the folder is named PKG) and finally as ``<root>/rest`` (the bundle is the package);
+    ``file://`` URIs must name a relative path; anything resolving outside is refused unopened."""
+    what = "mesh filename"
+    if filename.startswith("file://"):
+        inner = filename[len("file://"):]
+        if not inner or inner.startswith("/"):
+            conf.refuse(filename, source=source, element=element, what=what)
+        p = conf.resolve(inner, [urdf_dir], source=source, element=element, what=what)
+        return p if p.is_file() else None
+    if filename.startswith("package://"):
+        rest = filename[len("package://"):]
+        package, _, inner = rest.partition("/")
+        parts = PurePosixPath(inner).parts
+        if (package in ("", ".", "..") or not inner or PurePosixPath(inner).is_absolute() or ".." in parts
+                or "\\" in rest):
+            conf.refuse(filename, source=source, element=element, what=what)
+        folders, folder = [], Path(os.path.abspath(urdf_dir))
+        while True:
+            folders.append(folder)
+            if folder == conf.root or conf.root not in folder.parents:
+                break
+            folder = folder.parent
+        candidates = []
+        for folder in folders:
+            candidates.append(folder / package / inner)
+            if folder.name == package:
+                candidates.append(folder / inner)
+        candidates.append(conf.root / inner)
+        for cand in candidates:
+            try:
+                p = conf.resolve(os.path.relpath(cand, urdf_dir), [urdf_dir], source=source, element=element)
+            except InputError:
+                conf.refuse(filename, source=source, element=element, what=what)
+            if p.is_file():
+                return p
+        return None
+    if "://" in filename:
+        conf.refuse(filename, source=source, element=element, what=what)
+    p = conf.resolve(filename, [urdf_dir], source=source, element=element, what=what)
+    return p if p.is_file() else None
+
+
+def _load_mesh_file(path: Path, *, source, element, shown=None) -> tuple[np.ndarray, np.ndarray]:
     import trimesh
 
     try:
         mesh = trimesh.load(str(path), force="mesh")
     except Exception as exc:  # trimesh raises many kinds
+        if shown is not None:
+            raise InputError(f"cannot read mesh file {shown!r}: {str(exc).replace(str(path), shown)}",
+                             source=source, element=element) from exc
         raise InputError(f"cannot read mesh file {path}: {exc}", source=source, element=element) from exc
     v = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), float)
     f = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), np.int64)
     if len(v) == 0 or len(f) == 0:
-        raise InputError(f"mesh file {path} has no triangles", source=source, element=element)
+        raise InputError(f"mesh file {shown if shown is not None else path} has no triangles", source=source,
+                         element=element)
     return v, f
 
 
-def _urdf_geometry(geometry, urdf_dir: Path, *, source, element):
+def _urdf_geometry(geometry, urdf_dir: Path, *, source, element, conf: Confinement | None = None):
     """(vertices, faces) in the geometry's own frame, or None for an empty geometry."""
     if geometry is None:
         return None
     if geometry.mesh is not None:
-        filename = geometry.mesh.filename
-        path = _resolve_mesh_path(filename, urdf_dir)
-        if path is None:
-            raise InputError(
-                f"mesh file {filename!r} not found (searched relative to {urdf_dir})",
-                source=source,
-                element=element,
-            )
-        v, f = _load_mesh_file(path, source=source, element=element)
+        filename = str(geometry.mesh.filename)
+        if conf is not None:
+            element = f"{element} <mesh filename={filename!r}>"
+            path = _resolve_mesh_confined(filename, urdf_dir, conf, source=source, element=element)
+            if path is None:
+                raise InputError(f"mesh file {filename!r} not found in the rig's folder", source=source,
+                                 element=element)
+            v, f = _load_mesh_file(path, source=source, element=element, shown=filename)
+        else:
+            path = _resolve_mesh_path(filename, urdf_dir)
+            if path is None:
+                raise InputError(
+                    f"mesh file {filename!r} not found (searched relative to {urdf_dir})",
+                    source=source,
+                    element=element,
+                )
+            v, f = _load_mesh_file(path, source=source, element=element)
         scale = geometry.mesh.scale
         if scale is not None:
             v = v * np.broadcast_to(np.asarray(scale, float), (3,))
@@ -197,7 +327,7 @@ def _urdf_geometry(geometry, urdf_dir: Path, *, source, element):
     return None
 
 
-def load_urdf(path, *, wrapper_resolution: float = 0.002) -> Rig:
+def load_urdf(path, *, wrapper_resolution: float = 0.002, confine_to=None) -> Rig:
     """Load a robot hand from a URDF file.
 
     - Each non-fixed URDF joint becomes a rig joint named after its child link, with one DOF
@@ -217,24 +347,38 @@ def load_urdf(path, *, wrapper_resolution: float = 0.002) -> Rig:
     - Mesh references: relative paths (to the URDF folder), ``file://`` and ``package://``
       (searched upward from the URDF folder); a missing file raises InputError naming the
       URDF, the link and the mesh.
+    - ``confine_to`` (a folder holding the URDF, e.g. an unpacked upload): every mesh must lie
+      inside it (``package://PKG/rest`` is searched only up to it, and as ``<folder>/rest``);
+      a reference outside (absolute, ``file:///...``, ``..`` above it, a link out) raises
+      InputError naming the element and the reference as written, without opening or
+      stat-ing anything outside; errors and ``metadata["source_file"]`` name the URDF relative
+      to the folder.
     """
     import yourdfpy
 
     path = Path(path)
-    source = str(path)
+    conf = Confinement(confine_to) if confine_to is not None else None
+    if conf is not None:
+        path = conf.check_file(path, source=path.name, what="URDF file")
+        source = conf.shown(path)
+    else:
+        source = str(path)
     if not path.is_file():
         raise InputError("URDF file not found", source=source)
+    if conf is not None:
+        _no_doctype(path, source=source)
     try:
         ET.parse(path)  # yourdfpy recovers from malformed XML silently; be strict first
     except ET.ParseError as exc:
-        raise InputError(f"malformed XML: {exc}", source=source) from exc
+        raise InputError(f"malformed XML: {exc if conf is None else conf.scrub(str(exc))}", source=source) from exc
     try:
         urdf = yourdfpy.URDF.load(
             str(path), load_meshes=False, build_scene_graph=False, build_collision_scene_graph=False,
             load_collision_meshes=False,
         )
     except Exception as exc:
-        raise InputError(f"yourdfpy cannot parse the URDF: {exc}", source=source) from exc
+        text = str(exc) if conf is None else conf.scrub(str(exc).replace(str(path), source))
+        raise InputError(f"yourdfpy cannot parse the URDF: {text}", source=source) from exc
     robot = urdf.robot
     if robot is None or not robot.links:
         raise InputError("the URDF has no links", source=source)
@@ -313,7 +457,7 @@ def load_urdf(path, *, wrapper_resolution: float = 0.002) -> Rig:
         link_world = zero[owner] @ offset
         elements = list(link.visuals) or list(link.collisions)
         for k, element in enumerate(elements):
-            geom = _urdf_geometry(element.geometry, urdf_dir, source=source, element=f"link {link_name!r}")
+            geom = _urdf_geometry(element.geometry, urdf_dir, source=source, element=f"link {link_name!r}", conf=conf)
             if geom is None:
                 continue
             v, f = geom
@@ -352,7 +496,56 @@ def _axis_angle(axis, angle) -> np.ndarray:
     return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)
 
 
-def load_mjcf(path, *, root_body: str | None = None, wrapper_resolution: float = 0.002) -> Rig:
+def _check_mjcf_files(path: Path, conf: Confinement, *, source) -> None:
+    """Refuse an MJCF whose includes, ``meshdir``/``texturedir``/``assetdir`` or ``file*``
+    attributes (mesh, texture incl. cube faces, hfield, skin, include) could resolve outside
+    ``conf.root``, before MuJoCo opens anything. Each reference is checked against every base
+    MuJoCo might use (the main file's folder, the including file's folder, and each asset
+    folder), so it is refused if any reading of it escapes. Sub-models (``<model file>``) are
+    refused."""
+    model_dir = path.parent
+    files, queue, elements = {path}, [path], []
+    while queue:
+        xml = queue.pop()
+        shown = conf.shown(xml)
+        _no_doctype(xml, source=shown)
+        try:
+            tree = ET.parse(xml)
+        except ET.ParseError as exc:
+            raise InputError(f"malformed XML: {exc}", source=shown) from exc
+        for el in tree.iter():
+            tag = str(el.tag).rsplit("}", 1)[-1]
+            if tag == "model":
+                raise InputError("sub-models (<model file=...>) are not accepted in a rig bundle", source=shown,
+                                 element=f"<{tag}>")
+            elements.append((xml, tag, el))
+            if tag == "include" and "file" in el.attrib:
+                written = el.attrib["file"]
+                element = f"<include file={written!r}>"
+                inc = conf.resolve(written, [model_dir, xml.parent], source=shown, element=element, what="file")
+                if not inc.is_file():
+                    raise InputError(f"included file {written!r} not found in the rig's folder", source=shown,
+                                     element=element)
+                if inc not in files:
+                    files.add(inc)
+                    queue.append(inc)
+    dirs = []
+    for xml, tag, el in elements:
+        for attr, written in el.attrib.items():
+            name = attr.rsplit("}", 1)[-1]
+            if name in ("meshdir", "texturedir", "assetdir"):
+                dirs.append(conf.resolve(written or ".", [model_dir, xml.parent], source=conf.shown(xml),
+                                         element=f"<{tag} {name}={written!r}>", what=name))
+    bases = [model_dir, *dirs]
+    for xml, tag, el in elements:
+        for attr, written in el.attrib.items():
+            name = attr.rsplit("}", 1)[-1]
+            if name.startswith("file") and tag != "include":
+                conf.resolve(written, [*bases, xml.parent], source=conf.shown(xml),
+                             element=f"<{tag} {name}={written!r}>", what="file")
+
+
+def load_mjcf(path, *, root_body: str | None = None, wrapper_resolution: float = 0.002, confine_to=None) -> Rig:
     """Load a robot hand from a MuJoCo MJCF file (compiled by ``mujoco.MjModel``).
 
     - The hand is the body subtree under ``root_body``; when None, the single child of the
@@ -378,17 +571,30 @@ def load_mjcf(path, *, root_body: str | None = None, wrapper_resolution: float =
       subtree has pure visual geoms (contype = conaffinity = 0) only those are used (they are the
       robot's looks; the colliding geoms duplicate them coarsely); otherwise all geoms. The same
       geometry is ``Rig.visual`` and the wrapper's input.
+    - ``confine_to`` (a folder holding the MJCF, e.g. an unpacked upload): every file the model
+      names (includes, meshes, textures, height fields, skins, and the asset folders
+      ``meshdir``/``texturedir``/``assetdir``) must lie inside it; anything else raises
+      InputError naming the element and the value as written, before MuJoCo opens a file.
+      Errors and ``metadata["source_file"]`` name the file relative to the folder.
     """
     import mujoco
 
     path = Path(path)
-    source = str(path)
+    conf = Confinement(confine_to) if confine_to is not None else None
+    if conf is not None:
+        path = conf.check_file(path, source=path.name, what="MJCF file")
+        source = conf.shown(path)
+    else:
+        source = str(path)
     if not path.is_file():
         raise InputError("MJCF file not found", source=source)
+    if conf is not None:
+        _check_mjcf_files(path, conf, source=source)
     try:
         model = mujoco.MjModel.from_xml_path(str(path))
     except Exception as exc:  # mujoco raises ValueError with the compiler's message
-        raise InputError(f"MuJoCo cannot load the model: {exc}", source=source) from exc
+        text = str(exc) if conf is None else conf.scrub(str(exc))
+        raise InputError(f"MuJoCo cannot load the model: {text}", source=source) from exc
 
     def name_of(obj, i):
         n = mujoco.mj_id2name(model, obj, i)

@@ -37,6 +37,7 @@ transposed on the way in and out.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -185,6 +186,187 @@ def write_rig_usd(rig: Rig, path) -> None:
     with atomic_path(path, suffix=ext) as tmp:
         if not stage.GetRootLayer().Export(str(tmp)):
             raise OSError(f"USD could not write {path}")
+
+
+# ---- confinement ---------------------------------------------------------------------------
+#: layer fields whose asset paths are composed (sublayers, references, payloads, value clips)
+_ARC_FIELDS = {"subLayers": "subLayers", "references": "references", "payload": "payload", "clips": "clips",
+               "clipSets": "clipSets"}
+
+
+def _asset_paths(value):
+    """Asset paths (as written) held by a layer field's value."""
+    Sdf = _pxr()[1]
+    if isinstance(value, Sdf.AssetPath):
+        if value.path:
+            yield value.path
+    elif isinstance(value, (Sdf.Reference, Sdf.Payload)):
+        if value.assetPath:
+            yield value.assetPath
+    elif isinstance(value, (Sdf.ReferenceListOp, Sdf.PayloadListOp)):
+        for items in (value.explicitItems, value.addedItems, value.prependedItems, value.appendedItems,
+                      value.deletedItems, value.orderedItems):
+            for item in items:
+                yield from _asset_paths(item)
+    elif isinstance(value, dict):
+        for v in value.values():
+            yield from _asset_paths(v)
+    elif isinstance(value, str):
+        return
+    elif hasattr(value, "__iter__") and not isinstance(value, (bytes, bytearray)):
+        try:
+            items = list(value)
+        except TypeError:
+            return
+        for v in items:
+            yield from _asset_paths(v)
+
+
+def layer_asset_paths(layer) -> list[tuple[str, str, str, bool]]:
+    """Every asset path a layer names: (spec path, field, asset path as written, is a
+    composition arc). Sublayers, references, payloads and value clips are arcs; other asset
+    paths (textures, asset-valued attributes and metadata) are not."""
+    Sdf = _pxr()[1]
+    found = []
+    for sub in layer.subLayerPaths:
+        found.append(("/", "subLayers", str(sub), True))
+    specs = []
+    layer.Traverse(Sdf.Path.absoluteRootPath, specs.append)
+    for path in specs:
+        spec = layer.GetObjectAtPath(path)
+        if spec is None:
+            continue
+        for key in spec.ListInfoKeys():
+            if key == "subLayers":
+                continue
+            try:
+                value = spec.GetInfo(key)
+            except Exception:  # noqa: BLE001 - an unreadable field is not an asset path
+                continue
+            for asset in _asset_paths(value):
+                found.append((str(path), key, str(asset), key in _ARC_FIELDS))
+    covered = {a for _, _, a, arc in found if arc}
+    for dep in layer.GetCompositionAssetDependencies():  # whatever the walk above did not see
+        if dep and dep not in covered:
+            found.append(("/", "composition arc", str(dep), True))
+    return found
+
+
+def _arc_label(spec_path: str, field: str) -> str:
+    return field if spec_path == "/" else f"{field} of <{spec_path}>"
+
+
+def _open_layer(path: Path, *, src: str):
+    Sdf = _pxr()[1]
+    try:
+        layer = Sdf.Layer.FindOrOpen(str(path))
+        if layer is not None and not layer.dirty:
+            layer.Reload()
+    except Exception as exc:  # pxr.Tf.ErrorException
+        raise InputError(f"not a readable USD file: {_scrub(str(exc), path)}", source=src) from exc
+    if layer is None:
+        raise InputError("not a readable USD file", source=src)
+    return layer
+
+
+def _scrub(text: str, path: Path) -> str:
+    text = text.strip()
+    for p in sorted({str(path), str(Path(path).resolve()), str(Path(path).parent), str(Path(path).resolve().parent)},
+                    key=len, reverse=True):
+        text = text.replace(p, Path(path).name if p.endswith(Path(path).name) else ".")
+    return text
+
+
+def check_confined_layers(path, confine_to) -> None:
+    """Every composition arc of the USD layer at ``path``, and of the layers it reaches, must
+    name an existing file inside the folder ``confine_to`` (or, when ``confine_to`` is the file
+    itself, the layer may have no arc to another layer). Raises InputError naming the layer
+    (relative to the folder), the arc and the asset path as written; nothing outside is opened."""
+    from .robot_import import Confinement
+
+    path = Path(path)
+    confine_to = Path(confine_to)
+    single = not confine_to.is_dir()
+    conf = Confinement(confine_to.parent if single else confine_to)
+    path = conf.check_file(path, source=path.name, what="USD file")
+    seen, queue = {path}, [path]
+    while queue:
+        current = queue.pop()
+        shown = conf.shown(current)
+        layer = _open_layer(current, src=shown)
+        for spec_path, field, asset, arc in layer_asset_paths(layer):
+            if not arc:
+                continue
+            element = f"{_arc_label(spec_path, field)} @{asset}@"
+            if single:
+                raise InputError("a USD rig uploaded as one layer may not compose other layers; upload one "
+                                 "flattened layer", source=shown, element=element)
+            if "://" in asset or "[" in asset or ":" in asset[:3]:
+                conf.refuse(asset, source=shown, element=element, what="asset path")
+            target = conf.resolve(asset, [current.parent], source=shown, element=element, what="asset path")
+            if not target.is_file():
+                raise InputError(f"layer {asset!r} not found in the upload", source=shown, element=element)
+            if target not in seen:
+                seen.add(target)
+                queue.append(target)
+
+
+def flatten_confined(path, dest, *, confine_to=None) -> list[str]:
+    """Write the USD rig at ``path`` to ``dest`` as one flattened, self-contained layer.
+
+    Composition arcs must stay inside ``confine_to`` (a folder, e.g. an unpacked .usdz/zip
+    package; None: the layer at ``path`` may compose nothing), see
+    :func:`check_confined_layers`. Asset paths that are not arcs (textures, asset-valued
+    attributes and metadata) are dropped before anything is composed, so they are never
+    resolved. Returns a warning per dropped asset path."""
+    Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt = _pxr()
+    path = Path(path)
+    check_confined_layers(path, confine_to if confine_to is not None else path)
+    root = Path(confine_to) if confine_to is not None else path.parent
+    warnings: list[str] = []
+    layers = []
+    stack = [path]
+    opened = set()
+    while stack:  # every layer reached (all inside the root, checked above); cleaned in memory
+        current = stack.pop()
+        if current in opened:
+            continue
+        opened.add(current)
+        layer = _open_layer(current, src=current.name)
+        layers.append(layer)
+        for spec_path, field, asset, arc in layer_asset_paths(layer):
+            if arc:
+                stack.append(Path(os.path.normpath(current.parent / asset)))
+    for layer in layers:
+        shown = os.path.relpath(layer.realPath, os.path.realpath(root)) if confine_to is not None else path.name
+        drops = [(sp, f, a) for sp, f, a, arc in layer_asset_paths(layer) if not arc]
+        for spec_path, field, asset in drops:
+            spec = layer.GetObjectAtPath(spec_path)
+            if spec is None:
+                continue
+            if isinstance(spec, Sdf.AttributeSpec) and field in ("default", "timeSamples") and \
+                    spec.typeName in (Sdf.ValueTypeNames.Asset, Sdf.ValueTypeNames.AssetArray):
+                owner = spec.owner
+                if owner is not None and spec in list(owner.properties):
+                    owner.RemoveProperty(spec)
+            elif spec.HasInfo(field):
+                spec.ClearInfo(field)
+            warnings.append(f"{shown}: {_arc_label(spec_path, field)}: asset path {asset!r} dropped (only the "
+                            "rig's layers are kept; textures and other files are not resolved)")
+    try:
+        stage = Usd.Stage.Open(layers[0], Usd.Stage.LoadAll)
+        flat = stage.Flatten()
+        for layer in layers:  # the in-memory edits must not outlive this call
+            layer.Reload(force=True)
+    except Exception as exc:  # pxr.Tf.ErrorException
+        raise InputError(f"USD cannot compose the rig: {_scrub(str(exc), path)}", source=path.name) from exc
+    dest = Path(dest)
+    for spec_path, field, asset, arc in layer_asset_paths(flat):
+        raise InputError(f"the flattened rig still names {asset!r}", source=path.name,
+                         element=_arc_label(spec_path, field))
+    if not flat.Export(str(dest)):
+        raise OSError(f"USD could not write {dest.name}")
+    return sorted(set(warnings))
 
 
 # ---- reading -------------------------------------------------------------------------------
@@ -453,13 +635,27 @@ def _read_mesh(prim, skel_paths: list[str], *, src: str, element: str):
     return points, faces, ji, jw
 
 
-def read_rig_usd(path) -> Rig:
+def read_rig_usd(path, *, confine_to=None) -> Rig:
     """Read a rig written by :func:`write_rig_usd` (or any UsdSkel file carrying the
-    ``handretarget:`` DOF spec), converting to metres and Z-up; validated before returning."""
+    ``handretarget:`` DOF spec), converting to metres and Z-up; validated before returning.
+
+    ``confine_to``: a folder every composed layer (sublayers, references, payloads, value
+    clips) must lie in, or the file itself (then it may compose no other layer); checked on
+    the layers before the stage is composed (:func:`check_confined_layers`). Errors then name
+    the file relative to that folder."""
     path = Path(path)
     src = str(path)
     Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt = _pxr()
-    stage = _open_stage(path)
+    if confine_to is not None:
+        check_confined_layers(path, confine_to)
+        root = Path(confine_to) if Path(confine_to).is_dir() else Path(confine_to).parent
+        src = os.path.relpath(os.path.abspath(path), os.path.abspath(root))
+        try:
+            stage = _open_stage(path)
+        except InputError as err:
+            raise InputError(_scrub(str(err).replace(str(path), src), path)) from err
+    else:
+        stage = _open_stage(path)
     skel = _find_skeleton(stage)
     if skel is None:
         raise InputError("USD file without a skeleton (no UsdSkel.Skeleton prim)", source=src, element="Skeleton")
