@@ -8,10 +8,15 @@ from pathlib import Path
 from .settings import MIB, Settings
 
 
+#: Seconds uvicorn waits for open connections at shutdown before closing them.
+SHUTDOWN_GRACE = 2
+
 #: The serve option behind each setting (for error messages).
 FLAGS = {"data_dir": "--data-dir", "job_slots": "--job-slots", "frame_workers": "--workers",
          "dask_scheduler": "--dask-scheduler", "max_upload_bytes": "--max-upload-mb",
-         "max_active_jobs": "--max-active-jobs", "atlas_cache_bytes": "--atlas-cache-mb"}
+         "max_active_jobs": "--max-active-jobs", "atlas_cache_bytes": "--atlas-cache-mb",
+         "job_time_limit_s": "--job-time-limit", "job_memory_mb": "--job-memory-mb",
+         "validation_memory_mb": "--validation-memory-mb"}
 
 
 def settings_from_args(args) -> Settings:
@@ -21,7 +26,9 @@ def settings_from_args(args) -> Settings:
     try:
         return Settings(data_dir=Path(args.data_dir), job_slots=args.job_slots, frame_workers=args.workers,
                         dask_scheduler=args.dask_scheduler, max_upload_bytes=int(args.max_upload_mb * MIB),
-                        max_active_jobs=args.max_active_jobs, atlas_cache_bytes=int(args.atlas_cache_mb * MIB))
+                        max_active_jobs=args.max_active_jobs, atlas_cache_bytes=int(args.atlas_cache_mb * MIB),
+                        job_time_limit_s=args.job_time_limit, job_memory_mb=args.job_memory_mb,
+                        validation_memory_mb=args.validation_memory_mb)
     except ValidationError as err:
         raise SystemExit("; ".join(f"{FLAGS.get(str(e['loc'][0]), e['loc'][0])}: {e['msg']}"
                                    for e in err.errors())) from None
@@ -32,10 +39,26 @@ def _cmd_serve(args) -> int:
 
     from .app import configure_logging, create_app
 
+    from .storage import DataDirLocked, Store
+
     settings = settings_from_args(args)
+    # one service per data directory: a second one exits here, before it touches any job
+    try:
+        lock = Store(settings.data_dir).lock()
+    except DataDirLocked as err:
+        raise SystemExit(f"handretarget serve: {err}") from None
     configure_logging()
-    uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="warning", access_log=False)
-    return 0
+    app = create_app(settings)
+    # streams end when shutdown starts (they watch server.should_exit); whatever is still open
+    # after SHUTDOWN_GRACE s is closed, so SIGTERM / SIGINT exit within a few seconds
+    server = uvicorn.Server(uvicorn.Config(app, host=args.host, port=args.port, log_level="warning",
+                                           access_log=False, timeout_graceful_shutdown=SHUTDOWN_GRACE))
+    app.state.server = server
+    try:
+        server.run()
+    finally:
+        lock.close()
+    return 0 if server.started else 1
 
 
 def _cmd_token_create(args) -> int:

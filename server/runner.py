@@ -3,9 +3,12 @@
 One thread in the service claims queued jobs round-robin across owners (up to ``job_slots`` at
 once; see :meth:`Store.claim_next_job`) and
 starts ``python -m server.job_process`` for each in a new process group, so a cancel or a
-restart can stop the job with every process of its pool. At start-up, jobs the store still
-calls ``running`` (the service was stopped or killed mid-job) get their leftover processes
-stopped and go back to the queue; a job is tried at most ``max_attempts`` times.
+restart can stop the job with every process of its pool (the pool's workers are forked by the
+job process and stay in its group; when the job process itself dies, the runner kills what is
+left of its group before reaping it). At start-up, jobs the store still calls ``running`` (the
+service was stopped or killed mid-job) get their leftover processes stopped and go back to the
+queue without counting that attempt (the service went away, not the job); a job whose own
+process dies is tried at most ``max_attempts`` times.
 """
 
 from __future__ import annotations
@@ -37,20 +40,73 @@ def _alive_job_process(pid: int | None, job_id: str) -> bool:
     return b"server.job_process" in cmdline and job_id.encode() in cmdline
 
 
-def _stop_group(pid: int, grace: float = 3.0) -> None:
-    """SIGTERM the process group led by ``pid``, SIGKILL what is left after ``grace`` s."""
-    for sig, wait in ((signal.SIGTERM, grace), (signal.SIGKILL, 0.0)):
+def _group_members(pgid: int) -> list[int]:
+    """Pids of the processes in process group ``pgid`` (from /proc/PID/stat)."""
+    members = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
         try:
-            os.killpg(pid, sig)
-        except ProcessLookupError:
-            return
+            stat = (proc / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2:].split()  # after "pid (comm) ": state ppid pgrp ...
+        if len(fields) > 2 and int(fields[2]) == pgid:
+            members.append(int(proc.name))
+    return members
+
+
+def _leftover_job_group(pgid: int | None, job_id: str) -> bool:
+    """Whether process group ``pgid`` still holds processes of job ``job_id``: its leader, or
+    the pool workers it forked (their command line is the job process's)."""
+    if not pgid:
+        return False
+    for pid in _group_members(pgid):
+        try:
+            cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+        except OSError:
+            continue
+        if (b"server.job_process" in cmdline and job_id.encode() in cmdline) or b"multiprocessing" in cmdline:
+            return True
+    return False
+
+
+def _stop_groups(pids, grace: float = 2.0) -> None:
+    """SIGTERM the process groups led by ``pids`` (all at once), SIGKILL what is left after
+    ``grace`` s."""
+    pids = list(pids)
+    for sig, wait in ((signal.SIGTERM, grace), (signal.SIGKILL, 0.0)):
+        for pid in pids:
+            try:
+                os.killpg(pid, sig)
+            except ProcessLookupError:
+                pass
         deadline = time.monotonic() + wait
         while time.monotonic() < deadline:
-            try:
-                os.killpg(pid, 0)
-            except ProcessLookupError:
+            alive = False
+            for pid in pids:
+                try:
+                    os.killpg(pid, 0)
+                    alive = True
+                except ProcessLookupError:
+                    pass
+            if not alive:
                 return
             time.sleep(0.05)
+
+
+def _stop_group(pid: int, grace: float = 2.0) -> None:
+    """SIGTERM the process group led by ``pid``, SIGKILL what is left after ``grace`` s."""
+    _stop_groups([pid], grace)
+
+
+def _exited(proc: subprocess.Popen) -> bool:
+    """Whether the job process has exited, without reaping it: while it is an unreaped zombie
+    its pid (its group's id) cannot be reused, so its group can still be killed safely."""
+    try:
+        return os.waitid(os.P_PID, proc.pid, os.WEXITED | os.WNOHANG | os.WNOWAIT) is not None
+    except ChildProcessError:
+        return True
 
 
 class JobRunner:
@@ -75,20 +131,25 @@ class JobRunner:
         the next start re-runs them (the same path as after a crash)."""
         self._stop.set()
         self._thread.join(timeout=10)
-        for job_id, proc in list(self.children.items()):
-            _stop_group(proc.pid)
+        _stop_groups([proc.pid for proc in self.children.values()])
+        for proc in self.children.values():
             proc.wait(timeout=10)
         self.children.clear()
 
     def recover(self) -> None:
-        for job in self.store.jobs(states=(JobState.RUNNING,)):
-            if _alive_job_process(job.pid, job.id):
+        for job in self.store.jobs(states=(JobState.RUNNING,), limit=None):
+            if _alive_job_process(job.pid, job.id) or _leftover_job_group(job.pid, job.id):
                 _stop_group(job.pid)
-            self._requeue_or_fail(job, "the service stopped while the job was running")
+            # the service went away, not the job: this attempt does not count
+            self._requeue_or_fail(job, "the service stopped while the job was running", counted=False)
 
-    def _requeue_or_fail(self, job: JobRow, why: str) -> None:
+    def _requeue_or_fail(self, job: JobRow, why: str, counted: bool = True) -> None:
         running = (JobState.RUNNING,)
-        if job.cancel_requested:
+        if not counted and not job.cancel_requested:
+            log.info("re-queueing job %s (%s; attempt not counted)", job.id, why)
+            self.store.update_job(job.id, only_if_state=running, state=JobState.QUEUED, pid=None, stage="queued",
+                                  progress=0.0, frames_done=0, attempts=max(job.attempts - 1, 0))
+        elif job.cancel_requested:
             self.store.update_job(job.id, only_if_state=running, state=JobState.CANCELLED, pid=None,
                                   finished=time.time(), stage="cancelled")
         elif job.attempts >= self.settings.max_attempts:
@@ -111,7 +172,7 @@ class JobRunner:
     def _tick(self) -> None:
         for job_id, proc in list(self.children.items()):
             job = self.store.job(job_id)
-            if proc.poll() is None:
+            if not _exited(proc):
                 if job is not None and job.cancel_requested:
                     _stop_group(proc.pid)
                     proc.wait()
@@ -119,6 +180,12 @@ class JobRunner:
                     self.store.update_job(job_id, only_if_state=(JobState.RUNNING,), state=JobState.CANCELLED,
                                           pid=None, finished=time.time(), stage="cancelled")
                 continue
+            # the job process is gone (maybe killed): its pool workers go with it, then it is reaped
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            proc.wait()
             self.children.pop(job_id)
             if job is not None and job.state == JobState.RUNNING:  # died without a final state
                 self._requeue_or_fail(job, f"the job process exited with code {proc.returncode}")

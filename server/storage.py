@@ -56,6 +56,10 @@ CREATE INDEX IF NOT EXISTS jobs_state ON jobs (state, created);
 """
 
 
+class DataDirLocked(RuntimeError):
+    """Another running service holds the data directory's lock."""
+
+
 def _marks(values) -> str:
     """``?, ?, ...``: one SQL placeholder per value."""
     return ", ".join("?" * len(values))
@@ -194,6 +198,28 @@ class Store:
         finally:
             db.close()
 
+    # ---- the running service's lock ----------------------------------------------------------
+    def lock(self):
+        """Lock the data directory for this process (``fcntl.flock`` on DATA/service.lock, held
+        while the returned file stays open; the kernel drops it when the process dies, even by
+        kill -9). ``DataDirLocked`` when another service holds it."""
+        import fcntl
+
+        path = self.paths.root / "service.lock"
+        handle = open(path, "a+")
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.seek(0)
+            holder = handle.read().strip() or "unknown"
+            handle.close()
+            raise DataDirLocked(f"the data directory {self.paths.root} is in use by another `handretarget serve` "
+                                f"(pid {holder}); stop it first, or give this one another --data-dir") from None
+        handle.truncate(0)
+        handle.write(str(os.getpid()))
+        handle.flush()
+        return handle
+
     # ---- tokens ------------------------------------------------------------------------------
     def create_token(self, owner: str) -> str:
         """A new bearer token for ``owner``; only its hash is stored, so it is shown once."""
@@ -295,7 +321,9 @@ class Store:
         return None if row is None else JobRow.from_row(row)
 
     def jobs(self, owner: str | None = None, states: tuple[JobState, ...] | None = None,
-             limit: int = 1000) -> list[JobRow]:
+             limit: int | None = None, after: tuple[float, str] | None = None) -> list[JobRow]:
+        """Jobs oldest first (by ``created``, then id); ``limit`` of them (None: all) after the
+        job ``after`` = (created, id) (the paging cursor of ``GET /v1/jobs``)."""
         where, args = [], []
         if owner is not None:
             where.append("owner = ?")
@@ -303,9 +331,15 @@ class Store:
         if states:
             where.append(f"state IN ({_marks(states)})")
             args += [JobState(x).value for x in states]
-        q = "SELECT * FROM jobs" + (" WHERE " + " AND ".join(where) if where else "") + " ORDER BY created LIMIT ?"
+        if after is not None:
+            where.append("(created > ? OR (created = ? AND id > ?))")
+            args += [after[0], after[0], after[1]]
+        q = "SELECT * FROM jobs" + (" WHERE " + " AND ".join(where) if where else "") + " ORDER BY created, id"
+        if limit is not None:
+            q += " LIMIT ?"
+            args.append(int(limit))
         with self.connect() as db:
-            return [JobRow.from_row(r) for r in db.execute(q, (*args, limit)).fetchall()]
+            return [JobRow.from_row(r) for r in db.execute(q, args).fetchall()]
 
     def state_counts(self) -> dict[str, int]:
         """{state: number of jobs} over every state."""

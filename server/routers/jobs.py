@@ -7,7 +7,7 @@ import asyncio
 import json
 import time
 
-from fastapi import APIRouter, Depends, Header, HTTPException, Path, Query, Response
+from fastapi import APIRouter, Depends, Header, HTTPException, Path, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, StreamingResponse
 
@@ -137,23 +137,40 @@ def cancel_job(job_id: str = Path(..., pattern=JOB_ID), owner: str = Depends(cur
 
 
 @router.get("/{job_id}/events", responses=ERRORS | {200: {"content": {"text/event-stream": {}}}})
-async def job_events(job_id: str = Path(..., pattern=JOB_ID), owner: str = Depends(current_owner),
-                     store: Store = Depends(get_store)):
+async def job_events(request: Request, job_id: str = Path(..., pattern=JOB_ID), owner: str = Depends(current_owner),
+                     store: Store = Depends(get_store), settings: Settings = Depends(get_settings)):
     """Server-sent events: a ``status`` event (the job as JSON) whenever it changes, ending
-    after a final state."""
+    after a final state (or when the service shuts down). At most ``max_streams_per_owner``
+    streams per owner at once (429 beyond)."""
     await run_in_threadpool(_own_job, store, owner, job_id)
+    app = request.app
+    streams = app.state.__dict__.setdefault("streams", {})
+    if streams.get(owner, 0) >= settings.max_streams_per_owner:
+        raise HTTPException(429, f"you already have {streams[owner]} event streams open (the limit is "
+                                 f"{settings.max_streams_per_owner}); close one or poll GET /v1/jobs/{{id}}",
+                            headers={"Retry-After": "5"})
+
+    def shutting_down() -> bool:
+        server = getattr(app.state, "server", None)
+        return server is not None and server.should_exit
 
     async def stream():
         last = None
-        while True:
-            job = await run_in_threadpool(store.job, job_id)
-            data = json.dumps(public(store, job).model_dump(mode="json"))
-            if data != last:
-                last = data
-                yield f"event: status\ndata: {data}\n\n"
-            if job.state.final:
-                return
-            await asyncio.sleep(0.2)
+        streams[owner] = streams.get(owner, 0) + 1  # counted once it runs: its finally always follows
+        try:
+            while not shutting_down():
+                job = await run_in_threadpool(store.job, job_id)
+                if job is None:  # deleted meanwhile
+                    return
+                data = json.dumps(public(store, job).model_dump(mode="json"))
+                if data != last:
+                    last = data
+                    yield f"event: status\ndata: {data}\n\n"
+                if job.state.final:
+                    return
+                await asyncio.sleep(0.2)
+        finally:
+            streams[owner] -= 1
 
     return StreamingResponse(stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"})
 
