@@ -33,6 +33,8 @@ class Settings(BaseModel):
     max_attempts: int = Field(default=3, ge=1)
     evaluate_stride: int = Field(default=4, ge=1)
     atlas_cache_bytes: int = Field(default=4096 * MIB, ge=0)
+    #: open ``GET /v1/jobs/{id}/events`` streams per owner (429 beyond)
+    max_streams_per_owner: int = Field(default=8, ge=1)
 
     @field_validator("dask_scheduler")
     @classmethod
