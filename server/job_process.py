@@ -12,6 +12,16 @@ Progress goes to the store a few times a second. When the service that started i
 Bad input (the core's :class:`~retarget_core.errors.RetargetError`) fails the job with its
 message; any other exception is a bug: the job fails as "internal error (...)" and the
 traceback goes to the job's log.
+
+Limits (:class:`Watchdog`, a thread started by :func:`main`): every 0.2 s it measures the wall
+time since the job process started and the memory (PSS, Linux /proc) of the job process and all
+its descendants (its local frame pool). Past ``Settings.job_time_limit_s`` or
+``Settings.job_memory_mb`` the job fails with "exceeded the job time limit of N s" / "exceeded
+the job memory limit of N MB", the pool's processes are killed and the job process exits. With
+``dask_scheduler`` the frames are solved on the cluster's workers: the time limit still ends
+the job (its client goes away with the job process, and the cluster drops its tasks), but the
+memory limit covers only the job process and its local pool, not the cluster workers, whose
+memory only the cluster's own limits (e.g. ``dask worker --memory-limit``) bound.
 """
 
 from __future__ import annotations
@@ -20,7 +30,9 @@ import argparse
 import logging
 import os
 import shutil
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -128,6 +140,71 @@ def run_job(store: Store, job_id: str, settings: Settings, *, parent: int | None
         return fail(f"internal error ({type(err).__name__}): {err}")
 
 
+class Watchdog:
+    """Fails job ``job_id`` once the process has run ``time_limit_s`` seconds or its process
+    tree holds more than ``memory_bytes`` (PSS), checked every ``interval`` s; then kills the
+    tree below this process and ends the process with exit code 4 (after the job is marked
+    failed, so the runner does not re-run it)."""
+
+    EXIT_CODE = 4
+
+    def __init__(self, store: Store, job_id: str, *, time_limit_s: float, memory_bytes: int,
+                 interval: float = 0.2, exit=os._exit):
+        self.store, self.job_id = store, job_id
+        self.time_limit_s, self.memory_bytes, self.interval = float(time_limit_s), int(memory_bytes), interval
+        self.started = time.monotonic()
+        self.peak = 0
+        self._exit = exit
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="job-watchdog", daemon=True)
+
+    def __enter__(self) -> "Watchdog":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def check(self) -> str | None:
+        """The limit exceeded now, as the job's error, or None."""
+        from .isolation import MIB, tree_memory_bytes
+
+        elapsed = time.monotonic() - self.started
+        if elapsed > self.time_limit_s:
+            return (f"exceeded the job time limit of {self.time_limit_s:g} s (ran {elapsed:.1f} s); "
+                    "the job was stopped")
+        used = tree_memory_bytes(os.getpid())
+        self.peak = max(self.peak, used)
+        if used > self.memory_bytes:
+            return (f"exceeded the job memory limit of {self.memory_bytes // MIB} MB (its processes held "
+                    f"{used // MIB} MB); the job was stopped")
+        return None
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval):
+            error = self.check()
+            if error is not None:
+                self._fail(error)
+                return
+
+    def _fail(self, error: str) -> None:
+        from .isolation import descendants
+
+        log.error("job %s: %s", self.job_id, error)
+        try:  # failed first: whatever the job's own thread writes after this is refused (only_if_state)
+            self.store.update_job(self.job_id, only_if_state=RUNNING, state=JobState.FAILED, error=error,
+                                  finished=time.time(), pid=None)
+        finally:
+            for pid in descendants(os.getpid()):  # the pool must not outlive the job
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                except (ProcessLookupError, PermissionError):
+                    pass
+            logging.shutdown()
+            self._exit(self.EXIT_CODE)
+
+
 def _asset_provenance(sources: dict, request) -> None:
     """The inputs' provenance names the request's asset ids, not the store's file paths."""
     for field, (_, name) in INPUT_ASSETS.items():
@@ -163,7 +240,12 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr)
     settings = Settings.model_validate_json(args.settings)
-    state = run_job(Store(settings.data_dir), args.job, settings, parent=args.parent)
+    store = Store(settings.data_dir)
+    from .isolation import MIB
+
+    with Watchdog(store, args.job, time_limit_s=settings.job_time_limit_s,
+                  memory_bytes=settings.job_memory_mb * MIB):
+        state = run_job(store, args.job, settings, parent=args.parent)
     return 0 if state == JobState.SUCCEEDED else 1
 
 

@@ -20,7 +20,16 @@ class Settings(BaseModel):
     ``max_attempts``: a job whose process dies (or whose service is killed) is re-run at most
     this many times in all. ``evaluate_stride``: every how many frames a job's evaluation
     measures. ``atlas_cache_bytes``: the built contact atlases kept under DATA/cache/atlas
-    (least recently used removed after each job)."""
+    (least recently used removed after each job).
+
+    Limits of work (issue 16): ``job_time_limit_s`` wall time of one job's process from its
+    start, and ``job_memory_mb`` the memory (PSS) of the job process and its local pool, both
+    checked every 0.2 s by the job process's watchdog (:mod:`server.job_process`; exceeding
+    either fails the job with a message naming the limit and stops its pool; frames solved on a
+    Dask cluster use the cluster workers' memory, which only the cluster's own limits bound).
+    ``validation_memory_mb``: an upload is validated in a child process killed past this much
+    memory (413), and a clip whose arrays would not fit in it is refused before it is
+    decompressed (:mod:`server.isolation`)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
@@ -33,6 +42,9 @@ class Settings(BaseModel):
     max_attempts: int = Field(default=3, ge=1)
     evaluate_stride: int = Field(default=4, ge=1)
     atlas_cache_bytes: int = Field(default=4096 * MIB, ge=0)
+    job_time_limit_s: float = Field(default=3600.0, gt=0)
+    job_memory_mb: int = Field(default=4096, ge=1)
+    validation_memory_mb: int = Field(default=1024, ge=1)
     #: open ``GET /v1/jobs/{id}/events`` streams per owner (429 beyond)
     max_streams_per_owner: int = Field(default=8, ge=1)
 

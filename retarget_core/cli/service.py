@@ -20,6 +20,12 @@ def add_commands(sub) -> None:
     serve.add_argument("--max-active-jobs", type=int, default=32, help="queued + running jobs per owner")
     serve.add_argument("--atlas-cache-mb", type=float, default=4096,
                        help="disk kept for built contact atlases (least recently used removed)")
+    serve.add_argument("--job-time-limit", type=float, default=3600, metavar="SECONDS",
+                       help="wall time of one job's process; beyond it the job fails")
+    serve.add_argument("--job-memory-mb", type=int, default=4096,
+                       help="memory (PSS) of one job's process and its local pool; beyond it the job fails")
+    serve.add_argument("--validation-memory-mb", type=int, default=1024,
+                       help="memory of the child process validating one upload; beyond it the upload gets 413")
     serve.set_defaults(func=_cmd_serve)
 
     token = sub.add_parser("token", help="API tokens of the job service")

@@ -10,7 +10,8 @@ from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, Res
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
-from ..assets import UploadError, annotations_info, clip_info, import_grab_clip, validate_upload
+from ..assets import UploadError, annotations_info, clip_info, import_grab_clip
+from ..isolation import MIB, MemoryLimitExceeded, ValidatorCrashed, validate_isolated
 from ..deps import current_owner, get_settings, get_store
 from ..schemas import SHA256, Asset, AssetKind, AssetList, GrabImport, Problem, ProposeRequest
 from ..settings import Settings
@@ -64,7 +65,9 @@ def _store_validated(store: Store, owner: str, kind: str, name: str, tmp, sha: s
     scratch = store.new_tmp(".d")
     scratch.mkdir()
     try:
-        path, ext, info = validate_upload(kind, tmp, name, scratch=scratch, bundle_bytes=4 * settings.max_upload_bytes)
+        # in a child process with a memory limit: a hostile upload never grows the server
+        path, ext, info = validate_isolated(kind, tmp, name, scratch=scratch, bundle_bytes=4 * settings.max_upload_bytes,
+                                            memory_bytes=settings.validation_memory_mb * MIB)
         final = store.put_blob(path, sha, ext)
         return store.add_asset(owner, sha, kind, name, size, final, info)
     finally:
@@ -87,6 +90,11 @@ async def upload_asset(request: Request, response: Response, kind: AssetKind,
     try:
         asset, created = await run_in_threadpool(_store_validated, store, owner, kind, name, tmp, sha, size, settings)
     except UploadError as err:
+        raise HTTPException(422, f"not a valid {kind}: {err}") from err
+    except MemoryLimitExceeded as err:
+        raise HTTPException(413, f"validating this {kind} {err}; the service refuses uploads that need more "
+                                 "(--validation-memory-mb)") from err
+    except ValidatorCrashed as err:
         raise HTTPException(422, f"not a valid {kind}: {err}") from err
     response.status_code = 201 if created else 200
     return asset.public()

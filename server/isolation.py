@@ -1,0 +1,190 @@
+"""Work on untrusted input outside the API process, with a memory limit; and the memory
+measure the job limits use.
+
+:func:`validate_isolated` runs :func:`server.assets.validate_upload` in a child process
+(``python -m server.isolation``, its own session), samples the child's memory every
+``interval`` s and kills it (its whole process group) past the limit: an upload that would
+need more memory than ``Settings.validation_memory_mb`` is refused (HTTP 413) and never grows
+the server. The measure is the PSS of the child and its descendants (Linux /proc, as the bench's
+``PeakMemory`` samples it) and the child's peak RSS (``VmHWM``, read while it runs and reported
+by the child itself when it is done), so a short peak between two samples still counts. An address-space rlimit is not used: embree and
+OpenBLAS reserve far more address space than they touch and fail under one.
+
+A clip upload's npz headers are also checked against the same limit before anything is
+decompressed (:func:`retarget_core.clip.format.check_npz_members`): arrays that could not fit
+are refused at once, naming the member (422).
+
+The service runs on Linux: the limits read ``/proc``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+MIB = 1024 * 1024
+log = logging.getLogger("server.isolation")
+
+
+class MemoryLimitExceeded(Exception):
+    """The isolated work needed more memory than its limit (the child was killed)."""
+
+    def __init__(self, limit_bytes: int, used_bytes: int):
+        self.limit_bytes, self.used_bytes = limit_bytes, used_bytes
+        super().__init__(f"exceeded the validation memory limit of {limit_bytes // MIB} MB "
+                         f"(reached {used_bytes // MIB} MB)")
+
+
+class ValidatorCrashed(Exception):
+    """The child died without an answer (a crash in a reader on a hostile file)."""
+
+
+# ---- memory of a process tree ---------------------------------------------------------------
+
+def process_memory_bytes(pid: int) -> int:
+    """Proportional set size of a process (bytes): pages shared with forked workers are
+    counted once across them, unlike RSS. 0 when the process is gone."""
+    try:
+        with open(f"/proc/{pid}/smaps_rollup") as fh:
+            for line in fh:
+                if line.startswith("Pss:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+def descendants(root: int) -> list[int]:
+    """Pids of every descendant of ``root`` (Linux /proc), children before grandchildren."""
+    children: dict[int, list[int]] = {}
+    for entry in os.scandir("/proc"):
+        if not entry.name.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry.name}/stat") as fh:
+                ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            continue
+        children.setdefault(ppid, []).append(int(entry.name))
+    out, stack = [], list(children.get(root, []))
+    while stack:
+        pid = stack.pop()
+        out.append(pid)
+        stack += children.get(pid, [])
+    return out
+
+
+def peak_rss_bytes(pid: int | str = "self") -> int:
+    """The peak resident set size (``VmHWM``) of a process since it started (its exec), bytes."""
+    try:
+        with open(f"/proc/{pid}/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+def tree_memory_bytes(root: int) -> int:
+    """PSS (bytes) of ``root`` and all its descendants."""
+    return sum(process_memory_bytes(pid) for pid in [root, *descendants(root)])
+
+
+# ---- upload validation in a child process -----------------------------------------------------
+
+def validate_isolated(kind: str, tmp: Path, filename: str, *, scratch: Path, bundle_bytes: int,
+                      memory_bytes: int, interval: float = 0.05):
+    """:func:`server.assets.validate_upload` in a child process limited to ``memory_bytes``;
+    returns its (path, suffix, info). Raises :class:`server.assets.UploadError` as the
+    validator did, :class:`MemoryLimitExceeded` past the limit, :class:`ValidatorCrashed` when
+    the child died otherwise."""
+    from .assets import UploadError
+
+    tmp, scratch = Path(tmp).resolve(), Path(scratch).resolve()
+    request = scratch / "isolation-request.json"
+    answer = scratch / "isolation-answer.json"
+    request.write_text(json.dumps({"kind": kind, "tmp": str(tmp), "filename": filename, "scratch": str(scratch),
+                                   "bundle_bytes": int(bundle_bytes), "max_clip_bytes": int(memory_bytes)}))
+    errors = scratch / "isolation-stderr.txt"
+    with errors.open("wb") as err_file:  # a file, not a pipe: a chatty reader never blocks on it
+        proc = subprocess.Popen([sys.executable, "-m", "server.isolation", str(request), str(answer)],
+                                stdin=subprocess.DEVNULL, stdout=err_file, stderr=subprocess.STDOUT,
+                                start_new_session=True, cwd=str(Path(__file__).resolve().parent.parent))
+    peak = 0
+    try:
+        # exited, not yet reaped: while the child is a zombie its pid (its group's id) is not
+        # reused, so what it left behind in its group can still be killed safely
+        while os.waitid(os.P_PID, proc.pid, os.WEXITED | os.WNOHANG | os.WNOWAIT) is None:
+            peak = max(peak, tree_memory_bytes(proc.pid), peak_rss_bytes(proc.pid))
+            if peak > memory_bytes:
+                raise MemoryLimitExceeded(memory_bytes, peak)
+            time.sleep(interval)
+    finally:
+        _kill_group(proc.pid)
+        proc.wait()
+        request.unlink(missing_ok=True)
+    stderr = errors.read_text(errors="replace") if errors.is_file() else ""
+    errors.unlink(missing_ok=True)
+    try:
+        result = json.loads(answer.read_text()) if answer.is_file() else None
+        peak = max(peak, int((result or {}).get("peak_rss", 0)))
+        if peak > memory_bytes:
+            raise MemoryLimitExceeded(memory_bytes, peak)
+        if result is None:  # the details (a traceback naming server paths) go to the log only
+            log.warning("upload validator (%s %r) exited with %s without an answer:\n%s", kind, filename,
+                        proc.returncode, stderr[-4000:])
+            raise ValidatorCrashed(f"the validator stopped without an answer (exit code {proc.returncode})")
+    finally:
+        answer.unlink(missing_ok=True)
+    if "upload_error" in result:
+        raise UploadError(result["upload_error"])
+    return Path(result["path"]), result["suffix"], result["info"]
+
+
+def _kill_group(pgid: int) -> None:
+    try:
+        os.killpg(pgid, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):
+        pass
+
+
+def _child(request_path: str, answer_path: str) -> int:
+    """The child: validate, write the answer as JSON. An UploadError (or the core's InputError)
+    is an answer; anything else is a crash (the traceback goes to stderr)."""
+    from retarget_core.errors import InputError
+
+    from .assets import UploadError, _without_path, validate_upload
+
+    req = json.loads(Path(request_path).read_text())
+    tmp = Path(req["tmp"])
+    try:
+        if req["kind"] == "clip" and tmp.open("rb").read(4) == b"PK\x03\x04":
+            from retarget_core.clip.format import check_npz_members
+
+            try:  # arrays that could not fit in the limit are refused before any is decompressed
+                check_npz_members(tmp, max_bytes=req["max_clip_bytes"], source="npz upload")
+            except InputError as err:
+                raise UploadError(str(err)) from err
+        path, suffix, info = validate_upload(req["kind"], tmp, req["filename"], scratch=Path(req["scratch"]),
+                                             bundle_bytes=req["bundle_bytes"])
+        answer = {"path": str(path), "suffix": suffix, "info": info}
+    except UploadError as err:
+        answer = {"upload_error": str(err)}
+    except InputError as err:  # a core check the validator did not wrap
+        answer = {"upload_error": _without_path(str(err), tmp)}
+    answer["peak_rss"] = peak_rss_bytes()
+    partial = Path(answer_path + ".part")
+    partial.write_text(json.dumps(answer))
+    partial.rename(answer_path)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_child(sys.argv[1], sys.argv[2]))
