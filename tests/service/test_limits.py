@@ -225,7 +225,7 @@ def test_a_job_past_its_memory_limit_fails_with_a_clear_message(tmp_path_factory
     try:
         final = _run_to_end(svc, inputs, FAST)
         assert final["state"] == "failed"
-        assert "exceeded the job memory limit of 300 MB" in final["error"]
+        assert "exceeded the job memory limit of 300 MB" in final["error"], final
         assert final["attempts"] == 1
     finally:
         svc.stop()
