@@ -31,3 +31,13 @@ def current_owner(request: Request, credentials: HTTPAuthorizationCredentials | 
         raise HTTPException(401, "unknown or revoked token", headers={"WWW-Authenticate": "Bearer"})
     request.state.owner = owner
     return owner
+
+
+def require_intact(store: Store, asset, what: str = "") -> None:
+    """410 when the stored file of ``asset`` (an :class:`~server.storage.AssetRow`) is missing
+    or no longer matches its recorded sha256; uploading the same bytes again repairs it."""
+    problem = store.blob_problem(store.asset_path(asset))
+    if problem is not None:
+        raise HTTPException(410, f"{what + ': ' if what else ''}the stored content of {asset.kind} asset {asset.id} "
+                                 f"is {problem} on the server (its sha256 no longer matches); upload the same file "
+                                 f"again to repair it")

@@ -53,6 +53,10 @@ CREATE UNIQUE INDEX IF NOT EXISTS jobs_idempotency ON jobs (owner, idempotency_k
     WHERE idempotency_key IS NOT NULL;
 CREATE INDEX IF NOT EXISTS jobs_owner ON jobs (owner, created);
 CREATE INDEX IF NOT EXISTS jobs_state ON jobs (state, created);
+CREATE TABLE IF NOT EXISTS blobs (path TEXT PRIMARY KEY, sha256 TEXT NOT NULL, size INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS artifacts (
+    job_id TEXT NOT NULL, name TEXT NOT NULL, sha256 TEXT NOT NULL, size INTEGER NOT NULL,
+    PRIMARY KEY (job_id, name));
 """
 
 
@@ -63,6 +67,14 @@ class DataDirLocked(RuntimeError):
 def _marks(values) -> str:
     """``?, ?, ...``: one SQL placeholder per value."""
     return ", ".join("?" * len(values))
+
+
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
 
 
 def hash_token(token: str) -> str:
@@ -238,14 +250,54 @@ class Store:
         return self.paths.tmp / f"{uuid.uuid4().hex}{suffix}"
 
     def put_blob(self, tmp: Path, sha256: str, ext: str) -> Path:
-        """Move the finished upload ``tmp`` to its content address (kept if already there)."""
+        """Move the finished upload ``tmp`` to its content address and record the stored
+        file's sha256 (for a converted rig it is not the upload's). An intact file already
+        there is kept; a missing or damaged one is replaced (re-uploading repairs it)."""
         final = self.paths.blob(sha256, ext)
         final.parent.mkdir(parents=True, exist_ok=True)
-        if final.exists():
+        if final.exists() and self.blob_problem(final) is None:
             tmp.unlink(missing_ok=True) if tmp.is_file() else shutil.rmtree(tmp, ignore_errors=True)
-        else:
-            os.replace(tmp, final)
+            return final
+        if final.is_dir():
+            shutil.rmtree(final, ignore_errors=True)
+        digest, size = (file_sha256(tmp), tmp.stat().st_size) if tmp.is_file() else (None, 0)
+        os.replace(tmp, final)
+        if digest is not None:
+            with self.connect() as db:
+                db.execute("INSERT OR REPLACE INTO blobs VALUES (?, ?, ?)", (self._rel(final), digest, size))
         return final
+
+    def _rel(self, path: Path) -> str:
+        return str(Path(path).relative_to(self.paths.root))
+
+    def blob_problem(self, path: Path) -> str | None:
+        """None when the stored file at ``path`` is whole: it exists and matches the sha256
+        recorded when it was stored (a file stored before records existed is recorded now).
+        Otherwise what is wrong with it: "missing" or "damaged"."""
+        return self._check(path, "SELECT sha256, size FROM blobs WHERE path = ?", (self._rel(path),),
+                           "INSERT OR REPLACE INTO blobs VALUES (?, ?, ?)", (self._rel(path),))
+
+    def artifact_problem(self, job_id: str, name: str) -> str | None:
+        """As :meth:`blob_problem`, for artifact ``name`` of job ``job_id``."""
+        return self._check(self.paths.job(job_id) / name,
+                           "SELECT sha256, size FROM artifacts WHERE job_id = ? AND name = ?", (job_id, name),
+                           "INSERT OR REPLACE INTO artifacts (job_id, name, sha256, size) VALUES (?, ?, ?, ?)",
+                           (job_id, name))
+
+    def _check(self, path: Path, select: str, key: tuple, insert: str, insert_key: tuple) -> str | None:
+        if path.is_dir():
+            return None  # an unpacked folder: not recorded file by file
+        if not path.is_file():
+            return "missing"
+        with self.connect() as db:
+            row = db.execute(select, key).fetchone()
+        if row is None:  # stored before hashes were recorded: trust it from now on
+            with self.connect() as db:
+                db.execute(insert, (*insert_key, file_sha256(path), path.stat().st_size))
+            return None
+        if path.stat().st_size != row["size"] or file_sha256(path) != row["sha256"]:
+            return "damaged"
+        return None
 
     def add_asset(self, owner: str, sha256: str, kind: str, name: str, size: int, path: Path,
                   info: dict) -> tuple[AssetRow, bool]:
@@ -261,12 +313,6 @@ class Store:
         q = "SELECT * FROM assets WHERE owner = ? AND sha256 = ?" + (" AND kind = ?" if kind else "")
         with self.connect() as db:
             row = db.execute(q, (owner, sha256, kind) if kind else (owner, sha256)).fetchone()
-        return None if row is None else AssetRow.from_row(row)
-
-    def asset_any_owner(self, sha256: str, kind: str) -> AssetRow | None:
-        """The same content already validated as ``kind`` for someone (its info is reused)."""
-        with self.connect() as db:
-            row = db.execute("SELECT * FROM assets WHERE sha256 = ? AND kind = ? LIMIT 1", (sha256, kind)).fetchone()
         return None if row is None else AssetRow.from_row(row)
 
     def assets(self, owner: str, kind: str | None = None) -> list[AssetRow]:
@@ -393,14 +439,22 @@ class Store:
 
     # ---- artifacts ---------------------------------------------------------------------------
     def publish_artifacts(self, job_id: str, folder: Path) -> Path:
-        """Rename a finished output ``folder`` (under tmp/) into place as the job's artifacts;
-        an earlier attempt's folder is replaced only after the new one is complete."""
+        """Rename a finished output ``folder`` (under tmp/) into place as the job's artifacts
+        and record each file's sha256 (checked whenever one is served); an earlier attempt's
+        folder is replaced only after the new one is complete."""
+        hashes = {p.name: (file_sha256(p), p.stat().st_size) for p in Path(folder).iterdir() if p.is_file()}
         final = self.paths.job(job_id)
         old = None
         if final.exists():
             old = self.new_tmp(".old")
             os.replace(final, old)
         os.replace(folder, final)
+        with self.connect() as db:
+            db.execute("BEGIN IMMEDIATE")
+            db.execute("DELETE FROM artifacts WHERE job_id = ?", (job_id,))
+            db.executemany("INSERT INTO artifacts VALUES (?, ?, ?, ?)",
+                           [(job_id, name, digest, size) for name, (digest, size) in hashes.items()])
+            db.execute("COMMIT")
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
         return final

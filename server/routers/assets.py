@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import shutil
+from pathlib import PurePath
 
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
@@ -12,7 +13,7 @@ from fastapi.responses import FileResponse
 
 from ..assets import UploadError, annotations_info, clip_info, import_grab_clip
 from ..isolation import MIB, MemoryLimitExceeded, ValidatorCrashed, validate_isolated
-from ..deps import current_owner, get_settings, get_store
+from ..deps import current_owner, get_settings, get_store, require_intact
 from ..schemas import SHA256, Asset, AssetKind, AssetList, GrabImport, Problem, ProposeRequest
 from ..settings import Settings
 from ..storage import AssetRow, Store
@@ -24,11 +25,12 @@ BAD_BODY = {400: {"model": Problem, "description": "the body could not be parsed
 
 
 def owned(store: Store, owner: str, asset_id: str, kind: str, field: str) -> AssetRow:
-    """The owner's asset of ``kind``; 404 naming the request field otherwise (another owner's
-    asset is as unknown as a missing one)."""
+    """The owner's asset of ``kind``, its stored file intact; 404 naming the request field
+    otherwise (another owner's asset is as unknown as a missing one), 410 if damaged."""
     asset = store.asset(owner, asset_id, kind)
     if asset is None:
         raise HTTPException(404, f"{field}: no {kind} asset {asset_id} of yours; upload it with POST /v1/assets/{kind}")
+    require_intact(store, asset, field)  # 410 when its stored file is missing or damaged
     return asset
 
 
@@ -58,10 +60,17 @@ async def _receive(request: Request, store: Store, limit: int):
 
 def _store_validated(store: Store, owner: str, kind: str, name: str, tmp, sha: str, size: int,
                      settings: Settings) -> tuple[AssetRow, bool]:
-    known = store.asset_any_owner(sha, kind)
-    if known is not None:  # the same bytes were validated before: share the blob
+    # Only the caller's own identical upload is returned as is (and only while its blob is
+    # intact: otherwise this upload repairs it). Another owner's identical upload is never
+    # looked at: it would show in the timing and the info; the blob store keeps one copy.
+    mine = store.asset(owner, sha, kind)
+    if mine is not None and kind == "file" and PurePath(mine.path).suffix != PurePath(name).suffix.lower():
         tmp.unlink(missing_ok=True)
-        return store.add_asset(owner, sha, kind, name, size, store.asset_path(known), known.info)
+        raise HTTPException(409, f"you uploaded these bytes as a {PurePath(mine.path).suffix} file before (asset "
+                                 f"{sha}); delete that asset to upload them as {PurePath(name).suffix or 'no suffix'}")
+    if mine is not None and store.blob_problem(store.asset_path(mine)) is None:
+        tmp.unlink(missing_ok=True)
+        return mine, False
     scratch = store.new_tmp(".d")
     scratch.mkdir()
     try:
@@ -121,6 +130,7 @@ def download_asset(asset_id: str = Path(..., pattern=SHA256), kind: AssetKind | 
     asset = store.asset(owner, asset_id, kind)
     if asset is None:
         raise HTTPException(404, f"no asset {asset_id} of yours")
+    require_intact(store, asset)
     path = store.asset_path(asset)
     return FileResponse(path, filename=f"{asset.name.rsplit('.', 1)[0]}{path.suffix}",
                         media_type="application/octet-stream")

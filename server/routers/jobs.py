@@ -189,4 +189,8 @@ def get_artifact(name: str, job_id: str = Path(..., pattern=JOB_ID), owner: str 
     path = store.paths.job(job_id) / name
     if not path.is_file():
         raise HTTPException(404, f"job {job_id} has no {name} (see the job's artifacts list)")
+    problem = store.artifact_problem(job_id, name)
+    if problem is not None:
+        raise HTTPException(500, f"artifact {name} of job {job_id} is {problem} on the server (its sha256 no longer "
+                                 "matches the one recorded when the job finished); submit the job again")
     return FileResponse(path, media_type=ARTIFACTS[name], filename=name)
