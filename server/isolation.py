@@ -10,6 +10,9 @@ the server. The measure is the PSS of the child and its descendants (Linux /proc
 by the child itself when it is done), so a short peak between two samples still counts. An address-space rlimit is not used: embree and
 OpenBLAS reserve far more address space than they touch and fail under one.
 
+The GRAB importer (``POST /v1/clips/import-grab``, :func:`import_grab_isolated`) runs the same
+way under the same limit.
+
 A clip upload's npz headers are also checked against the same limit before anything is
 decompressed (:func:`retarget_core.clip.format.check_npz_members`): arrays that could not fit
 are refused at once, naming the member (422).
@@ -105,13 +108,33 @@ def validate_isolated(kind: str, tmp: Path, filename: str, *, scratch: Path, bun
     returns its (path, suffix, info). Raises :class:`server.assets.UploadError` as the
     validator did, :class:`MemoryLimitExceeded` past the limit, :class:`ValidatorCrashed` when
     the child died otherwise."""
+    tmp = Path(tmp).resolve()
+    result = _run_child({"task": "validate", "kind": kind, "tmp": str(tmp), "filename": filename,
+                         "bundle_bytes": int(bundle_bytes), "max_clip_bytes": int(memory_bytes)},
+                        scratch=scratch, memory_bytes=memory_bytes, interval=interval, what=f"{kind} {filename!r}")
+    return Path(result["path"]), result["suffix"], result["info"]
+
+
+def import_grab_isolated(paths: dict, out: Path, *, scratch: Path, memory_bytes: int, interval: float = 0.05) -> dict:
+    """:func:`server.assets.import_grab_clip` on the uploaded files ``paths`` in a child
+    process limited to ``memory_bytes``; the clip is saved at ``out``; returns its info. Raises
+    as :func:`validate_isolated`."""
+    result = _run_child({"task": "grab", "paths": {k: None if v is None else str(Path(v).resolve())
+                                                   for k, v in paths.items()},
+                         "out": str(Path(out).resolve())},
+                        scratch=scratch, memory_bytes=memory_bytes, interval=interval, what="GRAB import")
+    return result["info"]
+
+
+def _run_child(request_doc: dict, *, scratch: Path, memory_bytes: int, interval: float, what: str) -> dict:
+    """Run ``python -m server.isolation`` on ``request_doc`` under the memory limit; its answer."""
     from .assets import UploadError
 
-    tmp, scratch = Path(tmp).resolve(), Path(scratch).resolve()
+    scratch = Path(scratch).resolve()
+    request_doc = dict(request_doc, scratch=str(scratch))
     request = scratch / "isolation-request.json"
     answer = scratch / "isolation-answer.json"
-    request.write_text(json.dumps({"kind": kind, "tmp": str(tmp), "filename": filename, "scratch": str(scratch),
-                                   "bundle_bytes": int(bundle_bytes), "max_clip_bytes": int(memory_bytes)}))
+    request.write_text(json.dumps(request_doc))
     errors = scratch / "isolation-stderr.txt"
     with errors.open("wb") as err_file:  # a file, not a pipe: a chatty reader never blocks on it
         proc = subprocess.Popen([sys.executable, "-m", "server.isolation", str(request), str(answer)],
@@ -138,14 +161,13 @@ def validate_isolated(kind: str, tmp: Path, filename: str, *, scratch: Path, bun
         if peak > memory_bytes:
             raise MemoryLimitExceeded(memory_bytes, peak)
         if result is None:  # the details (a traceback naming server paths) go to the log only
-            log.warning("upload validator (%s %r) exited with %s without an answer:\n%s", kind, filename,
-                        proc.returncode, stderr[-4000:])
+            log.warning("isolated %s exited with %s without an answer:\n%s", what, proc.returncode, stderr[-4000:])
             raise ValidatorCrashed(f"the validator stopped without an answer (exit code {proc.returncode})")
     finally:
         answer.unlink(missing_ok=True)
     if "upload_error" in result:
         raise UploadError(result["upload_error"])
-    return Path(result["path"]), result["suffix"], result["info"]
+    return result
 
 
 def _kill_group(pgid: int) -> None:
@@ -160,30 +182,50 @@ def _child(request_path: str, answer_path: str) -> int:
     is an answer; anything else is a crash (the traceback goes to stderr)."""
     from retarget_core.errors import InputError
 
-    from .assets import UploadError, _without_path, validate_upload
+    from .assets import UploadError, _without_path
 
     req = json.loads(Path(request_path).read_text())
-    tmp = Path(req["tmp"])
     try:
-        if req["kind"] == "clip" and tmp.open("rb").read(4) == b"PK\x03\x04":
-            from retarget_core.clip.format import check_npz_members
-
-            try:  # arrays that could not fit in the limit are refused before any is decompressed
-                check_npz_members(tmp, max_bytes=req["max_clip_bytes"], source="npz upload")
-            except InputError as err:
-                raise UploadError(str(err)) from err
-        path, suffix, info = validate_upload(req["kind"], tmp, req["filename"], scratch=Path(req["scratch"]),
-                                             bundle_bytes=req["bundle_bytes"])
-        answer = {"path": str(path), "suffix": suffix, "info": info}
+        if req["task"] == "grab":
+            answer = _grab(req)
+        else:
+            answer = _validate(req)
     except UploadError as err:
         answer = {"upload_error": str(err)}
     except InputError as err:  # a core check the validator did not wrap
-        answer = {"upload_error": _without_path(str(err), tmp)}
+        answer = {"upload_error": _without_path(str(err), Path(req.get("tmp", "upload")))}
     answer["peak_rss"] = peak_rss_bytes()
     partial = Path(answer_path + ".part")
     partial.write_text(json.dumps(answer))
     partial.rename(answer_path)
     return 0
+
+
+def _validate(req: dict) -> dict:
+    from retarget_core.errors import InputError
+
+    from .assets import UploadError, validate_upload
+
+    tmp = Path(req["tmp"])
+    if req["kind"] == "clip" and tmp.open("rb").read(4) == b"PK\x03\x04":
+        from retarget_core.clip.format import check_npz_members
+
+        try:  # arrays that could not fit in the limit are refused before any is decompressed
+            check_npz_members(tmp, max_bytes=req["max_clip_bytes"], source="npz upload")
+        except InputError as err:
+            raise UploadError(str(err)) from err
+    path, suffix, info = validate_upload(req["kind"], tmp, req["filename"], scratch=Path(req["scratch"]),
+                                         bundle_bytes=req["bundle_bytes"])
+    return {"path": str(path), "suffix": suffix, "info": info}
+
+
+def _grab(req: dict) -> dict:
+    from .assets import clip_info, import_grab_clip
+
+    paths = {k: None if v is None else Path(v) for k, v in req["paths"].items()}
+    clip = import_grab_clip(**paths)
+    clip.save(Path(req["out"]))
+    return {"info": clip_info(clip)}
 
 
 if __name__ == "__main__":

@@ -11,8 +11,8 @@ from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, Res
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
-from ..assets import UploadError, annotations_info, clip_info, import_grab_clip
-from ..isolation import MIB, MemoryLimitExceeded, ValidatorCrashed, validate_isolated
+from ..assets import UploadError, annotations_info
+from ..isolation import MIB, MemoryLimitExceeded, ValidatorCrashed, import_grab_isolated, validate_isolated
 from ..deps import current_owner, get_settings, get_store, require_intact
 from ..schemas import SHA256, Asset, AssetKind, AssetList, GrabImport, Problem, ProposeRequest
 from ..settings import Settings
@@ -151,7 +151,7 @@ def _save_new_asset(store: Store, owner: str, kind: str, name: str, write, info:
 
 @router.post("/clips/import-grab", response_model=Asset, status_code=201, responses=ERRORS | BAD_BODY)
 def import_grab(body: GrabImport, response: Response, owner: str = Depends(current_owner),
-                store: Store = Depends(get_store)):
+                store: Store = Depends(get_store), settings: Settings = Depends(get_settings)):
     """Convert a GRAB sequence (with the user's MANO model and the object's mesh, uploaded as
     ``file`` assets) into a clip asset."""
     def path(field):
@@ -159,14 +159,22 @@ def import_grab(body: GrabImport, response: Response, owner: str = Depends(curre
         return None if value is None else store.asset_path(owned(store, owner, value, "file", field))
 
     paths = {f: path(f) for f in ("sequence", "mano", "object_mesh", "table_mesh", "vtemp")}
-    try:
-        clip = import_grab_clip(**{"sequence": paths["sequence"], "mano": paths["mano"],
-                                   "object_mesh": paths["object_mesh"], "table_mesh": paths["table_mesh"],
-                                   "vtemp": paths["vtemp"]})
-    except UploadError as err:
-        raise HTTPException(422, f"cannot import the GRAB sequence: {err}") from err
-    asset, created = _save_new_asset(store, owner, "clip", body.name, clip.save,
-                                     clip_info(clip) | {"imported_from": "grab"})
+    scratch = store.new_tmp(".d")
+    scratch.mkdir()
+    try:  # in a child process with the validation memory limit, like an upload
+        try:
+            info = import_grab_isolated(paths, scratch / "clip.npz", scratch=scratch,
+                                        memory_bytes=settings.validation_memory_mb * MIB)
+        except (UploadError, ValidatorCrashed) as err:
+            raise HTTPException(422, f"cannot import the GRAB sequence: {err}") from err
+        except MemoryLimitExceeded as err:
+            raise HTTPException(413, f"importing the GRAB sequence {err}; the service refuses imports that need "
+                                     "more (--validation-memory-mb)") from err
+        asset, created = _save_new_asset(store, owner, "clip", body.name,
+                                         lambda p: shutil.move(str(scratch / "clip.npz"), str(p)),
+                                         info | {"imported_from": "grab"})
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
     response.status_code = 201 if created else 200
     return asset.public()
 

@@ -51,6 +51,8 @@ def check_request(body: JobCreate, owner: str, store: Store) -> None:
     hand (:func:`~retarget_core.inputs.clip_source_rig`; the job process's ``load_inputs``
     enforces it again), the frame range fits the clip, the config is valid, and the
     annotations were made for these meshes."""
+    from types import SimpleNamespace
+
     from retarget_core.clip import load_clip
     from retarget_core.errors import InputError
     from retarget_core.inputs import clip_source_rig, frame_range
@@ -67,7 +69,10 @@ def check_request(body: JobCreate, owner: str, store: Store) -> None:
     try:
         frame_range(body.frames, clip.info["frames"])
         if source is None:
-            clip_source_rig(load_clip(store.asset_path(clip)))
+            # the clip's source_rig field as recorded at upload: the clip is not read again here
+            named = (SimpleNamespace(source_rig=clip.info["source_rig"]) if "source_rig" in clip.info
+                     else load_clip(store.asset_path(clip)))
+            clip_source_rig(named)
     except InputError as err:  # its message names the field ("frames: ...", "clip: source_rig: ...")
         raise HTTPException(422, _without_paths(str(err), store)) from err
     ann = annotations.info
