@@ -227,3 +227,12 @@ def test_the_default_limit_reads_ordinary_clips(tmp_path):
     heads = check_npz_members(tmp_path / "c.npz")
     assert heads["hand_vertices"][0] == (4, 42, 3)
     assert load_clip(tmp_path / "c.npz", max_bytes=10**6).n_frames == 4
+
+
+@pytest.mark.parametrize("fps", [1e-300, 0.5, 1e5, 1e300])
+def test_fps_is_bounded(fps):
+    clip = small_clip()
+    clip.fps = fps
+    with pytest.raises(InputError, match="frames per second") as err:
+        clip.validate()
+    assert err.value.element == "fps"

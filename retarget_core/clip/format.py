@@ -9,7 +9,7 @@ field                shape        meaning
 ==================== ============ ===============================================================
 format               ()           the string "handretarget.clip"
 version              ()           1
-fps                  ()           frames per second (float64)
+fps                  ()           frames per second (float64), 1 to 10000
 hand_faces           (Fh, 3)      source hand triangles (int32)
 hand_vertices        (T, Vh, 3)   source hand vertices per frame, world (float32)
 object_vertices      (Vo, 3)      object mesh in its own frame (float64)
@@ -52,6 +52,9 @@ from ..errors import InputError
 from ..files import save_npz_atomic
 
 CLIP_FORMAT = "handretarget.clip"
+#: Frame rates a clip may have (capture systems record 30-240 Hz; the bounds keep the spline's
+#: control-point count and the filter's cutoff finite).
+FPS_RANGE = (1.0, 10_000.0)
 #: Default limit of a clip's uncompressed size (the sum of its members) in :func:`load_clip`.
 MAX_CLIP_BYTES = 2 * 1024 ** 3
 #: Largest npy header read (numpy's own default).
@@ -129,9 +132,15 @@ class Clip:
         def bad(field_name: str, message: str):
             raise InputError(message, source=src, element=field_name)
 
-        fps = float(self.fps) if np.ndim(self.fps) == 0 else float("nan")
+        try:
+            fps = float(self.fps) if np.ndim(self.fps) == 0 else float("nan")
+        except (TypeError, ValueError):
+            fps = float("nan")
+        lo, hi = FPS_RANGE
         if not np.isfinite(fps) or fps <= 0:
             bad("fps", f"must be a positive number, got {self.fps!r}")
+        if not lo <= fps <= hi:
+            bad("fps", f"must be within {lo:g} to {hi:g} frames per second, got {fps!r}")
 
         hv = self.hand_vertices
         if not isinstance(hv, np.ndarray) or hv.ndim != 3 or hv.shape[2] != 3 or hv.shape[0] < 1:
