@@ -15,7 +15,7 @@ traceback goes to the job's log.
 
 Limits (:class:`Watchdog`, a thread started by :func:`main`): every 0.2 s it measures the wall
 time since the job process started and the memory (PSS, Linux /proc) of the job process and all
-its descendants (its local frame pool). Past ``Settings.job_time_limit_s`` or
+its descendants (its local frame pool), and the job process's own peak RSS since it started. Past ``Settings.job_time_limit_s`` or
 ``Settings.job_memory_mb`` the job fails with "exceeded the job time limit of N s" / "exceeded
 the job memory limit of N MB", the pool's processes are killed and the job process exits. With
 ``dask_scheduler`` the frames are solved on the cluster's workers: the time limit still ends
@@ -168,13 +168,15 @@ class Watchdog:
 
     def check(self) -> str | None:
         """The limit exceeded now, as the job's error, or None."""
-        from .isolation import MIB, tree_memory_bytes
+        from .isolation import MIB, peak_rss_bytes, tree_memory_bytes
 
         elapsed = time.monotonic() - self.started
         if elapsed > self.time_limit_s:
             return (f"exceeded the job time limit of {self.time_limit_s:g} s (ran {elapsed:.1f} s); "
                     "the job was stopped")
-        used = tree_memory_bytes(os.getpid())
+        # the tree's PSS now, and this process's own peak RSS since it started (a spike in the
+        # job process between two samples still counts)
+        used = max(tree_memory_bytes(os.getpid()), peak_rss_bytes())
         self.peak = max(self.peak, used)
         if used > self.memory_bytes:
             return (f"exceeded the job memory limit of {self.memory_bytes // MIB} MB (its processes held "

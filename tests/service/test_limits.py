@@ -236,3 +236,52 @@ def test_limits_are_settings_with_documented_defaults():
 
     s = Settings(data_dir="x")
     assert (s.job_time_limit_s, s.job_memory_mb, s.validation_memory_mb) == (3600.0, 4096, 1024)
+
+
+WATCHDOG_SCRIPT = """
+import json, subprocess, sys, time
+from server.job_process import Watchdog
+
+class FakeStore:
+    def update_job(self, job_id, **fields):
+        with open(sys.argv[1], "w") as fh:
+            json.dump({"job": job_id, "state": str(fields["state"].value), "error": fields["error"]}, fh)
+
+pool = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+with open(sys.argv[2], "w") as fh:
+    fh.write(str(pool.pid))
+with Watchdog(FakeStore(), "job1", time_limit_s=1.0, memory_bytes=2**40, interval=0.05):
+    time.sleep(30)
+"""
+
+
+def test_the_watchdog_fails_the_job_and_stops_its_pool(tmp_path):
+    """The job process's watchdog, in a process of its own with a fake store: past the time limit
+    it marks the job failed with the limit's message, kills the processes below it (its pool)
+    and exits with code 4."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from server.job_process import Watchdog
+
+    record, pool_pid = tmp_path / "record.json", tmp_path / "pool.pid"
+    t0 = time.monotonic()
+    proc = subprocess.run([sys.executable, "-c", WATCHDOG_SCRIPT, str(record), str(pool_pid)], timeout=60,
+                          cwd=str(Path(__file__).resolve().parents[2]), capture_output=True, text=True)
+    assert proc.returncode == Watchdog.EXIT_CODE, proc.stderr
+    assert time.monotonic() - t0 < 20
+    doc = json.loads(record.read_text())
+    assert doc["job"] == "job1" and doc["state"] == "failed"
+    assert doc["error"].startswith("exceeded the job time limit of 1 s")
+    pid = int(pool_pid.read_text())
+    time.sleep(0.2)
+    # gone, or a zombie its new parent has not reaped yet
+    assert not Path(f"/proc/{pid}").exists() or "Z" in Path(f"/proc/{pid}/stat").read_text().split(")")[1][:3]
+
+
+def test_the_memory_check_names_the_limit():
+    from server.job_process import Watchdog
+
+    small = Watchdog(None, "job2", time_limit_s=3600, memory_bytes=10 * 2**20)
+    assert small.check().startswith("exceeded the job memory limit of 10 MB")
