@@ -78,8 +78,23 @@ class RetargetClient:
         return self._request("POST", f"/v1/assets/{kind}", body=data, content_type="application/octet-stream",
                              query={"name": name})
 
-    def assets(self, kind: str | None = None) -> list[dict]:
-        return self._request("GET", "/v1/assets", query={"kind": kind})["assets"]
+    def _pages(self, path: str, key: str, query: dict, limit: int | None):
+        """Every item of a paged list (following ``next_cursor``)."""
+        items, cursor = [], None
+        while True:
+            page = self._request("GET", path, query=query | {"limit": limit, "cursor": cursor})
+            items += page[key]
+            cursor = page.get("next_cursor")
+            if not cursor:
+                return items
+
+    def assets(self, kind: str | None = None, *, page_size: int | None = None) -> list[dict]:
+        """All your assets (every page, oldest first)."""
+        return self._pages("/v1/assets", "assets", {"kind": kind}, page_size)
+
+    def delete_asset(self, asset_id: str, kind: str | None = None) -> None:
+        """Remove your asset (409 while a queued or running job of yours uses it)."""
+        self._request("DELETE", f"/v1/assets/{asset_id}", query={"kind": kind})
 
     def asset_content(self, asset_id: str, kind: str | None = None) -> bytes:
         return self._request("GET", f"/v1/assets/{asset_id}/content", query={"kind": kind}, raw=True)
@@ -109,8 +124,13 @@ class RetargetClient:
     def job(self, job_id: str) -> dict:
         return self._request("GET", f"/v1/jobs/{job_id}")
 
-    def jobs(self, state: str | None = None) -> list[dict]:
-        return self._request("GET", "/v1/jobs", query={"state": state})["jobs"]
+    def jobs(self, state: str | None = None, *, page_size: int | None = None) -> list[dict]:
+        """All your jobs (every page, oldest first)."""
+        return self._pages("/v1/jobs", "jobs", {"state": state}, page_size)
+
+    def delete_job(self, job_id: str) -> None:
+        """Remove your finished job and its artifacts (409 while queued or running)."""
+        self._request("DELETE", f"/v1/jobs/{job_id}")
 
     def cancel(self, job_id: str) -> dict:
         return self._request("POST", f"/v1/jobs/{job_id}/cancel")

@@ -22,6 +22,7 @@ from .settings import Settings
 from .storage import Store
 
 API_VERSION = "1"
+KNOWN_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
 log = logging.getLogger("server.http")
 
 
@@ -106,10 +107,12 @@ def create_app(settings: Settings) -> FastAPI:
             return response
         finally:
             seconds = time.perf_counter() - start
+            # labels are bounded: route templates (not paths), known methods, 3-digit statuses
             route = request.scope.get("route")
             path = getattr(route, "path", "unmatched")
-            app.state.metrics.requests.labels(request.method, path, str(status)).inc()
-            app.state.metrics.latency.labels(request.method, path).observe(seconds)
+            method = request.method if request.method in KNOWN_METHODS else "OTHER"
+            app.state.metrics.requests.labels(method, path, str(status)).inc()
+            app.state.metrics.latency.labels(method, path).observe(seconds)
             log.info("request", extra={"request_id": request_id, "method": request.method, "path": request.url.path,
                                        "status": status, "ms": round(1000 * seconds, 2),
                                        "owner": getattr(request.state, "owner", None)})

@@ -1,5 +1,6 @@
-"""What ``handretarget serve`` and ``handretarget token create`` run. Their options are defined in
-the core (retarget_core/cli/service.py), which imports this module only when one of them runs."""
+"""What ``handretarget serve`` and ``handretarget token create`` / ``revoke`` run. Their options
+are defined in the core (retarget_core/cli/service.py), which imports this module only when one
+of them runs."""
 
 from __future__ import annotations
 
@@ -16,7 +17,8 @@ FLAGS = {"data_dir": "--data-dir", "job_slots": "--job-slots", "frame_workers": 
          "dask_scheduler": "--dask-scheduler", "max_upload_bytes": "--max-upload-mb",
          "max_active_jobs": "--max-active-jobs", "atlas_cache_bytes": "--atlas-cache-mb",
          "job_time_limit_s": "--job-time-limit", "job_memory_mb": "--job-memory-mb",
-         "validation_memory_mb": "--validation-memory-mb"}
+         "validation_memory_mb": "--validation-memory-mb", "storage_quota_bytes": "--storage-quota-mb",
+         "max_streams_per_owner": "--max-streams"}
 
 
 def settings_from_args(args) -> Settings:
@@ -28,7 +30,8 @@ def settings_from_args(args) -> Settings:
                         dask_scheduler=args.dask_scheduler, max_upload_bytes=int(args.max_upload_mb * MIB),
                         max_active_jobs=args.max_active_jobs, atlas_cache_bytes=int(args.atlas_cache_mb * MIB),
                         job_time_limit_s=args.job_time_limit, job_memory_mb=args.job_memory_mb,
-                        validation_memory_mb=args.validation_memory_mb)
+                        validation_memory_mb=args.validation_memory_mb,
+                        storage_quota_bytes=int(args.storage_quota_mb * MIB), max_streams_per_owner=args.max_streams)
     except ValidationError as err:
         raise SystemExit("; ".join(f"{FLAGS.get(str(e['loc'][0]), e['loc'][0])}: {e['msg']}"
                                    for e in err.errors())) from None
@@ -67,5 +70,15 @@ def _cmd_token_create(args) -> int:
     name = args.name.strip()
     if not name or len(name) > 100:
         raise SystemExit("NAME must be 1 to 100 characters")
-    print(Store(args.data_dir).create_token(name))
+    print(Store(args.data_dir).create_token(name, admin=args.admin))
+    return 0
+
+
+def _cmd_token_revoke(args) -> int:
+    from .storage import Store
+
+    removed = Store(args.data_dir).revoke_tokens(args.name.strip())
+    if not removed:
+        raise SystemExit(f"no token of {args.name.strip()!r} in {args.data_dir}")
+    print(f"revoked {removed} token{'s' if removed != 1 else ''} of {args.name.strip()!r}")
     return 0

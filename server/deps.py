@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import base64
+import json
+
 from fastapi import Depends, HTTPException, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
@@ -26,11 +29,39 @@ def current_owner(request: Request, credentials: HTTPAuthorizationCredentials | 
         raise HTTPException(401, "missing bearer token: send 'Authorization: Bearer <token>' "
                                  "(create one with `handretarget token create NAME`)",
                             headers={"WWW-Authenticate": "Bearer"})
-    owner = store.owner_of(credentials.credentials)
-    if owner is None:
+    holder = store.token_holder(credentials.credentials)
+    if holder is None:
         raise HTTPException(401, "unknown or revoked token", headers={"WWW-Authenticate": "Bearer"})
-    request.state.owner = owner
+    request.state.owner, request.state.admin = holder
+    return holder[0]
+
+
+def admin_owner(request: Request, owner: str = Depends(current_owner)) -> str:
+    """The owner of an admin token (``handretarget token create NAME --admin``); 403 otherwise."""
+    if not request.state.admin:
+        raise HTTPException(403, "this needs an admin token (`handretarget token create NAME --admin`)")
     return owner
+
+
+def encode_cursor(*key) -> str:
+    """An opaque paging cursor: the sort key of the last item of a page."""
+    return base64.urlsafe_b64encode(json.dumps(list(key)).encode()).decode().rstrip("=")
+
+
+def decode_cursor(cursor: str | None, types: tuple) -> tuple | None:
+    """The sort key in ``cursor`` (None for the first page); 422 unless it is one this service
+    gave, with values of ``types``."""
+    if cursor is None:
+        return None
+    try:
+        key = json.loads(base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4)))
+        if not (isinstance(key, list) and len(key) == len(types)
+                and all(isinstance(v, t) and not isinstance(v, bool) for v, t in zip(key, types))):
+            raise ValueError(cursor)
+    except ValueError:
+        raise HTTPException(422, "cursor: not a cursor of this list; pass the next_cursor of the previous page "
+                                 "(or none for the first page)") from None
+    return tuple(key)
 
 
 def require_intact(store: Store, asset, what: str = "") -> None:

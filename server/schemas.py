@@ -47,8 +47,14 @@ class Asset(BaseModel):
     info: dict[str, Any]
 
 
+#: Paging of list endpoints: ``limit`` items per page (at most MAX_PAGE), ``next_cursor`` in a
+#: page that has more after it (pass it as ``cursor`` for the next one; null on the last page).
+DEFAULT_PAGE, MAX_PAGE = 100, 1000
+
+
 class AssetList(BaseModel):
     assets: list[Asset]
+    next_cursor: str | None = Field(default=None, description="pass as ?cursor= for the next page; null: last page")
 
 
 class GrabImport(BaseModel):
@@ -111,3 +117,4 @@ class Job(BaseModel):
 
 class JobList(BaseModel):
     jobs: list[Job]
+    next_cursor: str | None = Field(default=None, description="pass as ?cursor= for the next page; null: last page")

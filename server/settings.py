@@ -47,6 +47,8 @@ class Settings(BaseModel):
     validation_memory_mb: int = Field(default=1024, ge=1)
     #: open ``GET /v1/jobs/{id}/events`` streams per owner (429 beyond)
     max_streams_per_owner: int = Field(default=8, ge=1)
+    #: bytes one owner may store: assets as uploaded plus their jobs' artifacts (413 beyond)
+    storage_quota_bytes: int = Field(default=10240 * MIB, ge=1)
 
     @field_validator("dask_scheduler")
     @classmethod

@@ -37,7 +37,8 @@ SCHEMA_VERSION = 1
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS tokens (
-    id TEXT PRIMARY KEY, owner TEXT NOT NULL, token_hash TEXT NOT NULL UNIQUE, created REAL NOT NULL);
+    id TEXT PRIMARY KEY, owner TEXT NOT NULL, token_hash TEXT NOT NULL UNIQUE, created REAL NOT NULL,
+    admin INTEGER NOT NULL DEFAULT 0);
 CREATE TABLE IF NOT EXISTS assets (
     owner TEXT NOT NULL, sha256 TEXT NOT NULL, kind TEXT NOT NULL, name TEXT NOT NULL,
     size INTEGER NOT NULL, path TEXT NOT NULL, info TEXT NOT NULL, created REAL NOT NULL,
@@ -194,7 +195,9 @@ class Store:
             row = db.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone()
             if row is None:
                 db.execute("INSERT INTO meta VALUES ('schema', ?)", (str(SCHEMA_VERSION),))
-            elif int(row[0]) != SCHEMA_VERSION:
+            if "admin" not in {r["name"] for r in db.execute("PRAGMA table_info(tokens)")}:  # a store from before
+                db.execute("ALTER TABLE tokens ADD COLUMN admin INTEGER NOT NULL DEFAULT 0")
+            if row is not None and int(row[0]) != SCHEMA_VERSION:
                 raise RuntimeError(f"data directory {self.paths.root} has store schema {row[0]}, "
                                    f"this service reads {SCHEMA_VERSION}")
 
@@ -233,17 +236,35 @@ class Store:
         return handle
 
     # ---- tokens ------------------------------------------------------------------------------
-    def create_token(self, owner: str) -> str:
-        """A new bearer token for ``owner``; only its hash is stored, so it is shown once."""
+    def create_token(self, owner: str, admin: bool = False) -> str:
+        """A new bearer token for ``owner``; only its hash is stored, so it is shown once. An
+        ``admin`` token may also read ``/metrics`` (service-wide numbers)."""
         token = "hr_" + secrets.token_urlsafe(32)
         with self.connect() as db:
-            db.execute("INSERT INTO tokens VALUES (?, ?, ?, ?)", (uuid.uuid4().hex, owner, hash_token(token), time.time()))
+            db.execute("INSERT INTO tokens (id, owner, token_hash, created, admin) VALUES (?, ?, ?, ?, ?)",
+                       (uuid.uuid4().hex, owner, hash_token(token), time.time(), int(admin)))
         return token
 
-    def owner_of(self, token: str) -> str | None:
+    def token_holder(self, token: str) -> tuple[str, bool] | None:
+        """(owner, admin) of a valid token, or None."""
         with self.connect() as db:
-            row = db.execute("SELECT owner FROM tokens WHERE token_hash = ?", (hash_token(token),)).fetchone()
-        return None if row is None else row["owner"]
+            row = db.execute("SELECT owner, admin FROM tokens WHERE token_hash = ?", (hash_token(token),)).fetchone()
+        return None if row is None else (row["owner"], bool(row["admin"]))
+
+    def owner_of(self, token: str) -> str | None:
+        holder = self.token_holder(token)
+        return None if holder is None else holder[0]
+
+    def revoke_tokens(self, owner: str) -> int:
+        """Remove every token of ``owner`` (their next request gets 401); how many there were.
+        The owner's assets and jobs stay (a new token for the same name reaches them)."""
+        with self.connect() as db:
+            return db.execute("DELETE FROM tokens WHERE owner = ?", (owner,)).rowcount
+
+    def ping(self) -> None:
+        """Raise unless the database answers."""
+        with self.connect() as db:
+            db.execute("SELECT 1 FROM meta LIMIT 1").fetchone()
 
     # ---- blobs and assets ----------------------------------------------------------------------
     def new_tmp(self, suffix: str = "") -> Path:
@@ -315,11 +336,67 @@ class Store:
             row = db.execute(q, (owner, sha256, kind) if kind else (owner, sha256)).fetchone()
         return None if row is None else AssetRow.from_row(row)
 
-    def assets(self, owner: str, kind: str | None = None) -> list[AssetRow]:
-        q = "SELECT * FROM assets WHERE owner = ?" + (" AND kind = ?" if kind else "") + " ORDER BY created"
+    def assets(self, owner: str, kind: str | None = None, limit: int | None = None,
+               after: tuple[float, str, str] | None = None) -> list[AssetRow]:
+        """The owner's assets oldest first (by created, sha256, kind); ``limit`` of them (None:
+        all) after ``after`` = (created, sha256, kind) (the paging cursor of ``GET /v1/assets``)."""
+        q, args = "SELECT * FROM assets WHERE owner = ?", [owner]
+        if kind:
+            q += " AND kind = ?"
+            args.append(kind)
+        if after is not None:
+            q += " AND (created, sha256, kind) > (?, ?, ?)"
+            args += list(after)
+        q += " ORDER BY created, sha256, kind"
+        if limit is not None:
+            q += " LIMIT ?"
+            args.append(int(limit))
         with self.connect() as db:
-            rows = db.execute(q, (owner, kind) if kind else (owner,)).fetchall()
+            rows = db.execute(q, args).fetchall()
         return [AssetRow.from_row(r) for r in rows]
+
+    def delete_asset(self, owner: str, sha256: str, kind: str | None = None) -> list[AssetRow]:
+        """Remove the owner's asset(s) ``sha256`` (of ``kind``, or every kind); the deleted rows.
+        ``LookupError`` naming the job while a queued or running job of the owner uses it. The
+        stored file goes once no owner's asset refers to it."""
+        with self.connect() as db:
+            db.execute("BEGIN IMMEDIATE")
+            try:
+                q = "SELECT * FROM assets WHERE owner = ? AND sha256 = ?" + (" AND kind = ?" if kind else "")
+                rows = [AssetRow.from_row(r) for r in
+                        db.execute(q, (owner, sha256, kind) if kind else (owner, sha256)).fetchall()]
+                for job in db.execute(f"SELECT id, request FROM jobs WHERE owner = ? AND state IN "
+                                      f"({_marks(ACTIVE_STATES)})", (owner, *(x.value for x in ACTIVE_STATES))):
+                    request = json.loads(job["request"])
+                    for row in rows:
+                        used = [f for f, k in (("clip", "clip"), ("rig", "rig"), ("annotations", "annotations"),
+                                               ("source_rig", "rig")) if request.get(f) == sha256 and k == row.kind]
+                        if used:
+                            raise LookupError(f"job {job['id']} (queued or running) uses this asset as {used[0]}; "
+                                              "cancel it or wait for it to end")
+                for row in rows:
+                    db.execute("DELETE FROM assets WHERE owner = ? AND sha256 = ? AND kind = ?",
+                               (owner, row.sha256, row.kind))
+                orphans = [row.path for row in rows
+                           if db.execute("SELECT 1 FROM assets WHERE path = ? LIMIT 1", (row.path,)).fetchone() is None]
+                for path in orphans:
+                    db.execute("DELETE FROM blobs WHERE path = ?", (path,))
+                db.execute("COMMIT")
+            except BaseException:
+                db.execute("ROLLBACK")
+                raise
+        for path in orphans:
+            target = self.paths.root / path
+            shutil.rmtree(target, ignore_errors=True) if target.is_dir() else target.unlink(missing_ok=True)
+        return rows
+
+    def usage(self, owner: str) -> int:
+        """Bytes the owner stores: their assets (as uploaded) and their jobs' artifacts."""
+        with self.connect() as db:
+            assets = db.execute("SELECT COALESCE(SUM(size), 0) FROM assets WHERE owner = ?", (owner,)).fetchone()[0]
+            artifacts = db.execute("SELECT COALESCE(SUM(a.size), 0) FROM artifacts a JOIN jobs j ON j.id = a.job_id "
+                                   "WHERE j.owner = ?", (owner,)).fetchone()[0]
+        return int(assets) + int(artifacts)
 
     def asset_path(self, asset: AssetRow) -> Path:
         return self.paths.root / asset.path
@@ -386,6 +463,24 @@ class Store:
             args.append(int(limit))
         with self.connect() as db:
             return [JobRow.from_row(r) for r in db.execute(q, args).fetchall()]
+
+    def delete_job(self, owner: str, job_id: str) -> bool:
+        """Remove the owner's finished job ``job_id``: its record, artifacts and log. True when
+        it was there; ``LookupError`` while it is queued or running."""
+        with self.connect() as db:
+            db.execute("BEGIN IMMEDIATE")
+            row = db.execute("SELECT state FROM jobs WHERE id = ? AND owner = ?", (job_id, owner)).fetchone()
+            if row is None or not JobState(row["state"]).final:
+                db.execute("COMMIT")
+                if row is None:
+                    return False
+                raise LookupError(f"job {job_id} is {row['state']}; cancel it first")
+            db.execute("DELETE FROM jobs WHERE id = ?", (job_id,))
+            db.execute("DELETE FROM artifacts WHERE job_id = ?", (job_id,))
+            db.execute("COMMIT")
+        shutil.rmtree(self.paths.job(job_id), ignore_errors=True)
+        (self.paths.root / "logs" / f"{job_id}.log").unlink(missing_ok=True)
+        return True
 
     def state_counts(self) -> dict[str, int]:
         """{state: number of jobs} over every state."""

@@ -1,6 +1,6 @@
-"""``handretarget serve`` and ``handretarget token create``: the job service (server/) behind the
-one ``handretarget`` entry point. The options are defined here, so ``--help`` needs no service
-dependency; the service is imported only when one of these commands runs, and a failed import
+"""``handretarget serve`` and ``handretarget token create`` / ``revoke``: the job service
+(server/) behind the one ``handretarget`` entry point. The options are defined here, so
+``--help`` needs no service dependency; the service is imported only when one of these commands runs, and a failed import
 is an error that shows the ImportError."""
 
 from __future__ import annotations
@@ -26,6 +26,9 @@ def add_commands(sub) -> None:
                        help="memory (PSS) of one job's process and its local pool; beyond it the job fails")
     serve.add_argument("--validation-memory-mb", type=int, default=1024,
                        help="memory of the child process validating one upload; beyond it the upload gets 413")
+    serve.add_argument("--storage-quota-mb", type=float, default=10240,
+                       help="bytes one owner may store (assets as uploaded + job artifacts); beyond: 413")
+    serve.add_argument("--max-streams", type=int, default=8, help="open event streams per owner; beyond: 429")
     serve.set_defaults(func=_cmd_serve)
 
     token = sub.add_parser("token", help="API tokens of the job service")
@@ -33,7 +36,13 @@ def add_commands(sub) -> None:
     create = token_sub.add_parser("create", help="create a token for NAME and print it (shown once)")
     create.add_argument("name")
     create.add_argument("--data-dir", default="service_data")
+    create.add_argument("--admin", action="store_true", help="the token may also read /metrics (service-wide)")
     create.set_defaults(func=_cmd_token_create)
+    revoke = token_sub.add_parser("revoke", help="revoke every token of NAME (their requests get 401 at once; "
+                                                 "NAME's assets and jobs stay)")
+    revoke.add_argument("name")
+    revoke.add_argument("--data-dir", default="service_data")
+    revoke.set_defaults(func=_cmd_token_revoke)
 
 
 def _service(*modules: str):
@@ -57,3 +66,7 @@ def _cmd_serve(args) -> int:
 
 def _cmd_token_create(args) -> int:
     return _service("server", "server.storage")._cmd_token_create(args)
+
+
+def _cmd_token_revoke(args) -> int:
+    return _service("server", "server.storage")._cmd_token_revoke(args)

@@ -13,8 +13,8 @@ from fastapi.responses import FileResponse
 
 from ..assets import UploadError, annotations_info
 from ..isolation import MIB, MemoryLimitExceeded, ValidatorCrashed, import_grab_isolated, validate_isolated
-from ..deps import current_owner, get_settings, get_store, require_intact
-from ..schemas import SHA256, Asset, AssetKind, AssetList, GrabImport, Problem, ProposeRequest
+from ..deps import current_owner, decode_cursor, encode_cursor, get_settings, get_store, require_intact
+from ..schemas import DEFAULT_PAGE, MAX_PAGE, SHA256, Asset, AssetKind, AssetList, GrabImport, Problem, ProposeRequest
 from ..settings import Settings
 from ..storage import AssetRow, Store
 
@@ -96,6 +96,12 @@ async def upload_asset(request: Request, response: Response, kind: AssetKind,
     a raw file for the GRAB importer, as the request body. The asset's id is the sha256 of the
     bytes; uploading the same bytes again returns the same asset (200)."""
     tmp, sha, size = await _receive(request, store, settings.max_upload_bytes)
+    used = await run_in_threadpool(store.usage, owner)
+    if used + size > settings.storage_quota_bytes:
+        tmp.unlink(missing_ok=True)
+        raise HTTPException(413, f"storage quota: you store {used} bytes and this upload is {size}; the quota is "
+                                 f"{settings.storage_quota_bytes} bytes (--storage-quota-mb): delete assets or jobs "
+                                 "(DELETE /v1/assets/{id}, DELETE /v1/jobs/{id})")
     try:
         asset, created = await run_in_threadpool(_store_validated, store, owner, kind, name, tmp, sha, size, settings)
     except UploadError as err:
@@ -110,8 +116,32 @@ async def upload_asset(request: Request, response: Response, kind: AssetKind,
 
 
 @router.get("/assets", response_model=AssetList, responses=ERRORS)
-def list_assets(kind: AssetKind | None = None, owner: str = Depends(current_owner), store: Store = Depends(get_store)):
-    return AssetList(assets=[a.public() for a in store.assets(owner, kind)])
+def list_assets(kind: AssetKind | None = None,
+                limit: int = Query(default=DEFAULT_PAGE, ge=1, le=MAX_PAGE, description="assets per page"),
+                cursor: str | None = Query(default=None, max_length=500,
+                                           description="the next_cursor of the previous page"),
+                owner: str = Depends(current_owner), store: Store = Depends(get_store)):
+    """Your assets, oldest first, ``limit`` per page; follow ``next_cursor`` for the rest."""
+    rows = store.assets(owner, kind, limit=limit + 1, after=decode_cursor(cursor, (float, str, str)))
+    more = len(rows) > limit
+    rows = rows[:limit]
+    return AssetList(assets=[a.public() for a in rows],
+                     next_cursor=encode_cursor(rows[-1].created, rows[-1].sha256, rows[-1].kind) if more else None)
+
+
+@router.delete("/assets/{asset_id}", status_code=204, response_class=Response,
+               responses=ERRORS | {409: {"model": Problem}})
+def delete_asset(asset_id: str = Path(..., pattern=SHA256), kind: AssetKind | None = None,
+                 owner: str = Depends(current_owner), store: Store = Depends(get_store)):
+    """Remove your asset (of ``kind``, or of every kind with this id); 409 while a queued or
+    running job of yours uses it. The stored file goes once no owner's asset refers to it."""
+    try:
+        deleted = store.delete_asset(owner, asset_id, kind)
+    except LookupError as err:
+        raise HTTPException(409, str(err)) from err
+    if not deleted:
+        raise HTTPException(404, f"no asset {asset_id} of yours")
+    return Response(status_code=204)
 
 
 @router.get("/assets/{asset_id}", response_model=Asset, responses=ERRORS)

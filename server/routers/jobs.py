@@ -11,8 +11,8 @@ from fastapi import APIRouter, Depends, Header, HTTPException, Path, Query, Requ
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, StreamingResponse
 
-from ..deps import current_owner, get_settings, get_store
-from ..schemas import Job, JobCreate, JobList, JobState, Problem
+from ..deps import current_owner, decode_cursor, encode_cursor, get_settings, get_store
+from ..schemas import DEFAULT_PAGE, MAX_PAGE, Job, JobCreate, JobList, JobState, Problem
 from ..settings import Settings
 from ..storage import JobRow, Store
 from .assets import BAD_BODY, owned
@@ -117,9 +117,31 @@ def create_job(body: JobCreate, response: Response, owner: str = Depends(current
 
 
 @router.get("", response_model=JobList, responses=ERRORS)
-def list_jobs(state: JobState | None = Query(default=None), owner: str = Depends(current_owner),
-              store: Store = Depends(get_store)):
-    return {"jobs": [public(store, j) for j in store.jobs(owner, (state,) if state else None)]}
+def list_jobs(state: JobState | None = Query(default=None),
+              limit: int = Query(default=DEFAULT_PAGE, ge=1, le=MAX_PAGE, description="jobs per page"),
+              cursor: str | None = Query(default=None, max_length=500,
+                                         description="the next_cursor of the previous page"),
+              owner: str = Depends(current_owner), store: Store = Depends(get_store)):
+    """Your jobs, oldest first, ``limit`` per page; follow ``next_cursor`` for the rest."""
+    after = decode_cursor(cursor, (float, str))
+    rows = store.jobs(owner, (state,) if state else None, limit=limit + 1, after=after)
+    more = len(rows) > limit
+    rows = rows[:limit]
+    return {"jobs": [public(store, j) for j in rows],
+            "next_cursor": encode_cursor(rows[-1].created, rows[-1].id) if more else None}
+
+
+@router.delete("/{job_id}", status_code=204, response_class=Response, responses=ERRORS)
+def delete_job(job_id: str = Path(..., pattern=JOB_ID), owner: str = Depends(current_owner),
+               store: Store = Depends(get_store)):
+    """Remove one of your finished jobs with its artifacts (409 while queued or running:
+    cancel it first)."""
+    try:
+        if not store.delete_job(owner, job_id):
+            raise HTTPException(404, f"no job {job_id} of yours")
+    except LookupError as err:
+        raise HTTPException(409, str(err)) from err
+    return Response(status_code=204)
 
 
 @router.get("/{job_id}", response_model=Job, responses=ERRORS)

@@ -128,8 +128,9 @@ def test_fuzzing_left_the_service_sound(fuzz_service):
     svc, client = fuzz_service["service"], fuzz_service["client"]
     assert client.health() == {"status": "ok"}
     jobs = client.jobs()
-    assert [j["id"] for j in jobs] == [fuzz_service["job_id"]], "fuzzing created a job"
-    assert jobs[0]["state"] == "failed"
+    # the seeded (failed) job is still there, or the fuzzer deleted it (DELETE /v1/jobs/{id})
+    assert [j["id"] for j in jobs] in ([fuzz_service["job_id"]], []), "fuzzing created a job"
+    assert all(j["state"] == "failed" for j in jobs)
     total = sum(p.stat().st_size for p in svc.data_dir.rglob("*") if p.is_file())
     assert total < 50 * 1024 * 1024, f"the fuzzed service's data directory holds {total} bytes"
     assert not [p for p in (svc.data_dir / "tmp").iterdir()], "uploads left scratch files behind"
