@@ -425,6 +425,11 @@ class RetargetConfig:
     Top-level key ``method``: ``"contacts"`` (the paper) or a contact-free baseline
     (:data:`METHODS`); the settings a baseline does not use in its finger passes are listed in
     result.json (:func:`~retarget_core.solve.problem.unused_settings`).
+
+    Every numeric field has a range (:data:`BOUNDS`, tabled in the module docstring), checked by
+    :meth:`validate`: e.g. ``solver.maxeval`` 1-10000, ``refinement.max_iterations`` 0-200,
+    ``refinement.lowpass_order`` 1-10; beyond it is an InputError naming the dotted key and the
+    range, so no configuration (nor a service job's overrides) asks for unbounded work.
     """
 
     weights: Weights = field(default_factory=Weights)
