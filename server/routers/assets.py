@@ -17,6 +17,7 @@ from ..deps import current_owner, decode_cursor, encode_cursor, get_settings, ge
 from ..schemas import DEFAULT_PAGE, MAX_PAGE, SHA256, Asset, AssetKind, AssetList, GrabImport, Problem, ProposeRequest
 from ..settings import Settings
 from ..storage import AssetRow, Store
+from ..zipcheck import check_zip
 
 router = APIRouter(prefix="/v1", tags=["assets"])
 ERRORS = {401: {"model": Problem}, 404: {"model": Problem}, 413: {"model": Problem}, 422: {"model": Problem}}
@@ -74,6 +75,10 @@ def _store_validated(store: Store, owner: str, kind: str, name: str, tmp, sha: s
     scratch = store.new_tmp(".d")
     scratch.mkdir()
     try:
+        with tmp.open("rb") as head:
+            zipped = head.read(4) == b"PK\x03\x04"
+        if kind == "rig" and zipped:  # a malformed zip: 422 naming the problem, before the import
+            check_zip(tmp, max_bytes=4 * settings.max_upload_bytes)
         # in a child process with a memory limit: a hostile upload never grows the server
         path, ext, info = validate_isolated(kind, tmp, name, scratch=scratch, bundle_bytes=4 * settings.max_upload_bytes,
                                             memory_bytes=settings.validation_memory_mb * MIB)
