@@ -185,6 +185,7 @@ def _child(request_path: str, answer_path: str) -> int:
     from .assets import UploadError, _without_path
 
     req = json.loads(Path(request_path).read_text())
+    _exit_with_parent()
     try:
         if req["task"] == "grab":
             answer = _grab(req)
@@ -199,6 +200,20 @@ def _child(request_path: str, answer_path: str) -> int:
     partial.write_text(json.dumps(answer))
     partial.rename(answer_path)
     return 0
+
+
+def _exit_with_parent(interval: float = 0.5) -> None:
+    """End this child when the service that watches its memory is gone (killed mid-upload)."""
+    import threading
+
+    parent = os.getppid()
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(interval)
+        os._exit(3)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
 def _validate(req: dict) -> dict:
