@@ -7,8 +7,9 @@ measure the job limits use.
 need more memory than ``Settings.validation_memory_mb`` is refused (HTTP 413) and never grows
 the server. The measure is the PSS of the child and its descendants (Linux /proc, as the bench's
 ``PeakMemory`` samples it) and the child's peak RSS (``VmHWM``, read while it runs and reported
-by the child itself when it is done), so a short peak between two samples still counts. An address-space rlimit is not used: embree and
-OpenBLAS reserve far more address space than they touch and fail under one.
+by the child itself when it is done), so a short peak between two samples still counts. An
+address-space rlimit is not used: embree and OpenBLAS reserve far more address space than they
+touch and fail under one. The child ends itself if the service goes away mid-upload.
 
 The GRAB importer (``POST /v1/clips/import-grab``, :func:`import_grab_isolated`) runs the same
 way under the same limit.
