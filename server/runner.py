@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -142,6 +143,11 @@ class JobRunner:
                 _stop_group(job.pid)
             # the service went away, not the job: this attempt does not count
             self._requeue_or_fail(job, "the service stopped while the job was running", counted=False)
+        # nothing else writes under tmp/ now (this service holds the data directory's lock and
+        # serves no request yet; every job process is stopped): what is there was left by a
+        # killed service (partial uploads, a killed job's output)
+        for leftover in self.store.paths.tmp.iterdir():
+            shutil.rmtree(leftover, ignore_errors=True) if leftover.is_dir() else leftover.unlink(missing_ok=True)
 
     def _requeue_or_fail(self, job: JobRow, why: str, counted: bool = True) -> None:
         running = (JobState.RUNNING,)

@@ -49,6 +49,8 @@ class Settings(BaseModel):
     max_streams_per_owner: int = Field(default=8, ge=1)
     #: bytes one owner may store: assets as uploaded plus their jobs' artifacts (413 beyond)
     storage_quota_bytes: int = Field(default=10240 * MIB, ge=1)
+    #: seconds an upload may go without a byte arriving (408 beyond; its scratch file removed)
+    read_timeout_s: float = Field(default=60.0, gt=0)
 
     @field_validator("dask_scheduler")
     @classmethod

@@ -29,6 +29,8 @@ def add_commands(sub) -> None:
     serve.add_argument("--storage-quota-mb", type=float, default=10240,
                        help="bytes one owner may store (assets as uploaded + job artifacts); beyond: 413")
     serve.add_argument("--max-streams", type=int, default=8, help="open event streams per owner; beyond: 429")
+    serve.add_argument("--read-timeout", type=float, default=60, metavar="SECONDS",
+                       help="an upload with no data for this long gets 408 (its partial file is removed)")
     serve.set_defaults(func=_cmd_serve)
 
     token = sub.add_parser("token", help="API tokens of the job service")

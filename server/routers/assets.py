@@ -3,6 +3,8 @@ download; the GRAB importer; proposed annotations."""
 
 from __future__ import annotations
 
+import asyncio
+import errno
 import hashlib
 import shutil
 from pathlib import PurePath
@@ -35,8 +37,10 @@ def owned(store: Store, owner: str, asset_id: str, kind: str, field: str) -> Ass
     return asset
 
 
-async def _receive(request: Request, store: Store, limit: int):
-    """Stream the body to a scratch file; (path, sha256, size). 413 beyond ``limit``."""
+async def _receive(request: Request, store: Store, limit: int, timeout: float | None = None):
+    """Stream the body to a scratch file; (path, sha256, size). 413 beyond ``limit``, 408 when
+    no byte arrives for ``timeout`` s (a stalled client), 507 when the disk is full; the
+    scratch file is removed in every case."""
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > limit:
         raise HTTPException(413, f"upload of {int(declared)} bytes is over the limit of {limit} bytes")
@@ -44,12 +48,25 @@ async def _receive(request: Request, store: Store, limit: int):
     digest, size = hashlib.sha256(), 0
     try:
         with tmp.open("wb") as out:
-            async for chunk in request.stream():
+            chunks = request.stream().__aiter__()
+            while True:
+                try:
+                    chunk = await asyncio.wait_for(chunks.__anext__(), timeout)
+                except StopAsyncIteration:
+                    break
+                except asyncio.TimeoutError:
+                    raise HTTPException(408, f"the upload stalled: no data for {timeout:g} s "
+                                             f"(after {size} bytes); send the body again") from None
                 size += len(chunk)
                 if size > limit:
                     raise HTTPException(413, f"upload is over the limit of {limit} bytes")
                 digest.update(chunk)
                 out.write(chunk)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        if err.errno == errno.ENOSPC:
+            raise HTTPException(507, "the server's disk is full; try again later") from None
+        raise
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -100,7 +117,7 @@ async def upload_asset(request: Request, response: Response, kind: AssetKind,
     """Upload a rig (USD, or a zip of a URDF / MJCF hand), annotations (JSON), a clip (npz) or
     a raw file for the GRAB importer, as the request body. The asset's id is the sha256 of the
     bytes; uploading the same bytes again returns the same asset (200)."""
-    tmp, sha, size = await _receive(request, store, settings.max_upload_bytes)
+    tmp, sha, size = await _receive(request, store, settings.max_upload_bytes, settings.read_timeout_s)
     used = await run_in_threadpool(store.usage, owner)
     if used + size > settings.storage_quota_bytes:
         tmp.unlink(missing_ok=True)

@@ -12,11 +12,16 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import threading
 import time
 
 from pathlib import Path
+
+import pytest
+
+from dcc_client.client import ServiceError
 
 from .conftest import CLI, FAST, Service, _job_processes, free_port, upload_inputs
 
@@ -156,5 +161,98 @@ def test_sigterm_ends_event_streams_and_exits_within_5_s(tmp_path_factory, input
         assert time.monotonic() - start < 5
         assert ended.wait(2), "the event stream did not end"
         assert not _job_processes(svc.data_dir)  # the job's processes were stopped with it
+    finally:
+        svc.stop()
+
+
+def _start_upload(svc: Service, token: str, declared: int, sent: bytes) -> socket.socket:
+    """A raw upload that declares ``declared`` bytes and sends only ``sent``."""
+    sock = socket.create_connection(("127.0.0.1", svc.port), timeout=15)
+    sock.sendall(f"POST /v1/assets/file?name=slow.obj HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+                 f"Authorization: Bearer {token}\r\nContent-Type: application/octet-stream\r\n"
+                 f"Content-Length: {declared}\r\n\r\n".encode() + sent)
+    return sock
+
+
+def test_a_stalled_upload_times_out_and_leaves_nothing(tmp_path_factory):
+    # finding: "slow clients are never timed out" (an upload that stops sending held its request forever)
+    svc = Service(tmp_path_factory.mktemp("hyg_slow") / "data", "--read-timeout", "2").start()
+    try:
+        sock = _start_upload(svc, svc.token("olive"), 100_000, b"v 0 0 0\n" * 10)
+        start = time.monotonic()
+        try:
+            answer = b""
+            while b"\r\n\r\n" not in answer or len(answer.split(b"\r\n\r\n", 1)[1]) < 2 or \
+                    not answer.rstrip().endswith(b"}"):
+                part = sock.recv(65536)
+                if not part:
+                    break
+                answer += part
+            answer = answer.decode("latin-1")
+        except socket.timeout as err:
+            raise AssertionError("the stalled upload got no answer in 15 s") from err
+        finally:
+            sock.close()
+        assert answer.startswith("HTTP/1.1 408"), answer[:200]
+        assert "stalled" in answer and time.monotonic() - start < 10
+        assert not list((svc.data_dir / "tmp").iterdir())
+    finally:
+        svc.stop()
+
+
+def test_a_partial_upload_of_a_killed_service_is_removed_at_restart(tmp_path_factory):
+    # finding: "partial uploads stay in tmp/ after a kill"
+    svc = Service(tmp_path_factory.mktemp("hyg_partial") / "data").start()
+    try:
+        sock = _start_upload(svc, svc.token("pia"), 10_000_000, b"v 0 0 0\n" * 5000)
+        tmp = svc.data_dir / "tmp"
+        deadline = time.monotonic() + 10
+        while not list(tmp.iterdir()):
+            assert time.monotonic() < deadline, "the upload never reached tmp/"
+            time.sleep(0.05)
+        svc.kill9()
+        sock.close()
+        assert list(tmp.iterdir())  # the killed service left it there
+        svc.start()
+        assert not list(tmp.iterdir())
+    finally:
+        svc.stop()
+
+
+def test_event_streams_are_capped_per_owner(tmp_path_factory):
+    # finding: "no per-owner cap on concurrent requests or SSE streams (800 streams: health p50 298 ms)"
+    from server.schemas import JobCreate
+    from server.storage import Store
+
+    svc = Service(tmp_path_factory.mktemp("hyg_streams") / "data", "--max-streams", "3").start()
+    try:
+        c, other = svc.client("quin"), svc.client("rosa")
+        store = Store(svc.data_dir)
+        job_id = "f" * 32  # a job that stays running (the runner never started it): its streams stay open
+        with store.connect() as db:
+            db.execute("INSERT INTO jobs (id, owner, state, request, created, updated) VALUES (?, ?, ?, ?, ?, ?)",
+                       (job_id, "quin", "running", JobCreate(clip="a" * 64, rig="b" * 64, annotations="c" * 64)
+                        .model_dump_json(), time.time(), time.time()))
+        streams = [c.events(job_id) for _ in range(3)]
+        for s in streams:
+            assert next(s)["id"] == job_id  # each open, its first event read
+        with pytest.raises(ServiceError) as err:
+            next(c.events(job_id))
+        assert err.value.status == 429
+        assert other.assets() == []  # another owner is not held up
+        streams[0].close()
+        deadline = time.monotonic() + 10
+        while True:  # the closed stream's slot comes back
+            try:
+                fourth = c.events(job_id)
+                assert next(fourth)["id"] == job_id
+                break
+            except ServiceError as exc:
+                assert exc.status == 429 and time.monotonic() < deadline
+                time.sleep(0.2)
+        fourth.close()
+        for s in streams[1:]:
+            s.close()
+        store.update_job(job_id, state="cancelled")
     finally:
         svc.stop()
