@@ -11,6 +11,7 @@ import uuid
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI, Request
+from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
@@ -22,6 +23,8 @@ from .settings import Settings
 from .storage import Store
 
 API_VERSION = "1"
+#: Requests that validate or compute in the service (capped per owner beside all requests).
+HEAVY_PATHS = ("/v1/assets/", "/v1/clips/import-grab", "/v1/annotations/propose")
 KNOWN_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
 log = logging.getLogger("server.http")
 
@@ -94,6 +97,38 @@ def create_app(settings: Settings) -> FastAPI:
     @app.exception_handler(RequestValidationError)
     async def validation_error(request: Request, exc: RequestValidationError):
         return JSONResponse({"detail": _readable(exc)}, status_code=422)
+
+    active: dict[str, list[int]] = {}  # owner -> [requests, heavy requests] in progress (event loop only)
+
+    @app.middleware("http")
+    async def per_owner_limits(request: Request, call_next):
+        """At most ``max_requests_per_owner`` requests of one owner at once, of which at most
+        ``max_heavy_requests_per_owner`` uploads, GRAB imports or proposals (429 beyond), so
+        one owner cannot take the service's threads and validation processes from the others.
+        Event streams have their own cap (``max_streams_per_owner``)."""
+        auth = request.headers.get("authorization", "")
+        if not auth[:7].lower() == "bearer " or request.url.path.endswith("/events"):
+            return await call_next(request)
+        holder = await run_in_threadpool(store.token_holder, auth[7:].strip())
+        if holder is None:  # the route answers 401
+            return await call_next(request)
+        counts = active.setdefault(holder[0], [0, 0])
+        heavy = request.method == "POST" and request.url.path.startswith(HEAVY_PATHS)
+        if counts[0] >= settings.max_requests_per_owner:
+            return JSONResponse({"detail": f"you already have {counts[0]} requests in progress (the limit is "
+                                           f"{settings.max_requests_per_owner}); wait for one to finish"},
+                                status_code=429, headers={"Retry-After": "1"})
+        if heavy and counts[1] >= settings.max_heavy_requests_per_owner:
+            return JSONResponse({"detail": f"you already have {counts[1]} uploads, imports or proposals in progress "
+                                           f"(the limit is {settings.max_heavy_requests_per_owner}); wait for one "
+                                           "to finish"}, status_code=429, headers={"Retry-After": "1"})
+        counts[0] += 1
+        counts[1] += heavy
+        try:
+            return await call_next(request)
+        finally:
+            counts[0] -= 1
+            counts[1] -= heavy
 
     @app.middleware("http")
     async def log_and_measure(request: Request, call_next):

@@ -18,7 +18,8 @@ FLAGS = {"data_dir": "--data-dir", "job_slots": "--job-slots", "frame_workers": 
          "max_active_jobs": "--max-active-jobs", "atlas_cache_bytes": "--atlas-cache-mb",
          "job_time_limit_s": "--job-time-limit", "job_memory_mb": "--job-memory-mb",
          "validation_memory_mb": "--validation-memory-mb", "storage_quota_bytes": "--storage-quota-mb",
-         "max_streams_per_owner": "--max-streams", "read_timeout_s": "--read-timeout"}
+         "max_streams_per_owner": "--max-streams", "read_timeout_s": "--read-timeout",
+         "max_requests_per_owner": "--max-requests", "max_heavy_requests_per_owner": "--max-heavy-requests"}
 
 
 def settings_from_args(args) -> Settings:
@@ -32,7 +33,8 @@ def settings_from_args(args) -> Settings:
                         job_time_limit_s=args.job_time_limit, job_memory_mb=args.job_memory_mb,
                         validation_memory_mb=args.validation_memory_mb,
                         storage_quota_bytes=int(args.storage_quota_mb * MIB), max_streams_per_owner=args.max_streams,
-                        read_timeout_s=args.read_timeout)
+                        read_timeout_s=args.read_timeout, max_requests_per_owner=args.max_requests,
+                        max_heavy_requests_per_owner=args.max_heavy_requests)
     except ValidationError as err:
         raise SystemExit("; ".join(f"{FLAGS.get(str(e['loc'][0]), e['loc'][0])}: {e['msg']}"
                                    for e in err.errors())) from None

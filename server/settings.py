@@ -51,6 +51,9 @@ class Settings(BaseModel):
     storage_quota_bytes: int = Field(default=10240 * MIB, ge=1)
     #: seconds an upload may go without a byte arriving (408 beyond; its scratch file removed)
     read_timeout_s: float = Field(default=60.0, gt=0)
+    #: requests of one owner in progress at once, and of those uploads / imports / proposals (429 beyond)
+    max_requests_per_owner: int = Field(default=16, ge=1)
+    max_heavy_requests_per_owner: int = Field(default=2, ge=1)
 
     @field_validator("dask_scheduler")
     @classmethod

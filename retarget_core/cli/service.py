@@ -31,6 +31,9 @@ def add_commands(sub) -> None:
     serve.add_argument("--max-streams", type=int, default=8, help="open event streams per owner; beyond: 429")
     serve.add_argument("--read-timeout", type=float, default=60, metavar="SECONDS",
                        help="an upload with no data for this long gets 408 (its partial file is removed)")
+    serve.add_argument("--max-requests", type=int, default=16, help="requests of one owner at once; beyond: 429")
+    serve.add_argument("--max-heavy-requests", type=int, default=2,
+                       help="uploads, GRAB imports and proposals of one owner at once; beyond: 429")
     serve.set_defaults(func=_cmd_serve)
 
     token = sub.add_parser("token", help="API tokens of the job service")
