@@ -101,6 +101,35 @@ def create_app(settings: Settings) -> FastAPI:
     active: dict[str, list[int]] = {}  # owner -> [requests, heavy requests] in progress (event loop only)
 
     @app.middleware("http")
+    async def json_body_limit(request: Request, call_next):
+        """Bodies other than uploads (the JSON of jobs, imports, proposals) are read whole into
+        memory: at most ``max_json_bytes`` (413 beyond; uploads have ``max_upload_bytes``)."""
+        if request.method == "POST" and request.url.path.startswith("/v1/assets/"):
+            return await call_next(request)
+        limit = settings.max_json_bytes
+        declared = request.headers.get("content-length", "")
+        too_big = JSONResponse({"detail": f"the request body is over the limit of {limit} bytes for JSON bodies"},
+                               status_code=413)
+        if declared.isdigit() and int(declared) > limit:
+            return too_big
+        if declared or request.method in ("GET", "HEAD"):
+            return await call_next(request)
+        # no length declared (chunked): count what arrives
+        receive, seen = request._receive, 0
+
+        async def counted():
+            nonlocal seen
+            if seen > limit:  # the body ends here for the app; its answer is replaced below
+                return {"type": "http.request", "body": b"", "more_body": False}
+            message = await receive()
+            seen += len(message.get("body", b""))
+            return {"type": "http.request", "body": b"", "more_body": False} if seen > limit else message
+
+        request._receive = counted
+        response = await call_next(request)
+        return too_big if seen > limit else response
+
+    @app.middleware("http")
     async def per_owner_limits(request: Request, call_next):
         """At most ``max_requests_per_owner`` requests of one owner at once, of which at most
         ``max_heavy_requests_per_owner`` uploads, GRAB imports or proposals (429 beyond), so

@@ -54,6 +54,8 @@ class Settings(BaseModel):
     #: requests of one owner in progress at once, and of those uploads / imports / proposals (429 beyond)
     max_requests_per_owner: int = Field(default=16, ge=1)
     max_heavy_requests_per_owner: int = Field(default=2, ge=1)
+    #: a request body that is not an upload (JSON) may have this many bytes (413 beyond)
+    max_json_bytes: int = Field(default=1 * MIB, ge=1024)
 
     @field_validator("dask_scheduler")
     @classmethod

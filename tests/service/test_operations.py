@@ -88,3 +88,22 @@ def test_job_list_pages_past_1000(tmp_path_factory):
         assert err.value.status == 422
     finally:
         svc.stop()
+
+
+def test_json_bodies_have_a_size_limit(service):
+    # finding: "JSON bodies ignore `--max-upload-mb`" (a JSON body was read whole, whatever its size)
+    token = service.token("wes")
+    body = json.dumps({"clip": "a" * 64, "rig": "b" * 64, "annotations": "c" * 64,
+                       "overrides": {"pad": "x" * (2 * 1024 * 1024)}}).encode()
+    for chunked in (False, True):
+        conn = http.client.HTTPConnection("127.0.0.1", service.port, timeout=60)
+        headers = {"Authorization": f"Bearer {token}", "Content-Type": "application/json"}
+        if chunked:
+            conn.request("POST", "/v1/jobs", body=iter([body[i:i + 65536] for i in range(0, len(body), 65536)]),
+                         headers=headers, encode_chunked=True)
+        else:
+            conn.request("POST", "/v1/jobs", body=body, headers=headers)
+        resp = conn.getresponse()
+        doc = json.loads(resp.read())
+        conn.close()
+        assert resp.status == 413 and "JSON bodies" in doc["detail"], (chunked, resp.status, doc)
