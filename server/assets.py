@@ -94,9 +94,10 @@ def validate_upload(kind: str, tmp: Path, filename: str, *, scratch: Path, bundl
             # paths are dropped; the flattened layer is what is stored and what jobs open.
             path = tmp.rename(tmp.with_suffix(suffix))
             flat = scratch / f"rig{suffix}"
-            warnings = _core(lambda p: flatten_confined(p, flat), path, scratch=scratch)
-            info = rig_info(_core(lambda p: load_rig(p, confine_to=p), flat, scratch=scratch))
+            warnings = _core(lambda p: flatten_confined(p, flat), path, scratch=scratch, name=filename)
+            info = rig_info(_core(lambda p: load_rig(p, confine_to=p), flat, scratch=scratch, name=filename))
             tmp.with_suffix(suffix).unlink(missing_ok=True)
+            warnings = [w.replace(path.name, filename) for w in warnings]
             return flat, suffix, info | ({"warnings": warnings} if warnings else {})
         folder = scratch / "bundle"
         entry = _unpack_bundle(tmp, folder, bundle_bytes)
@@ -106,7 +107,7 @@ def validate_upload(kind: str, tmp: Path, filename: str, *, scratch: Path, bundl
             # A .usdz / zip USD package: composed with every layer confined to the package.
             flat = scratch / "rig.usdc"
             warnings = _core(lambda p: flatten_confined(p, flat, confine_to=folder), entry, scratch=scratch)
-            info = rig_info(_core(lambda p: load_rig(p, confine_to=p), flat, scratch=scratch))
+            info = rig_info(_core(lambda p: load_rig(p, confine_to=p), flat, scratch=scratch, name=filename))
             return flat, ".usdc", info | {"imported_from": shown} | ({"warnings": warnings} if warnings else {})
         # A robot bundle: unpacked safely, imported with every file it names confined to the
         # bundle (wrapper surface built once, here), and kept as the USD rig the jobs read, so
@@ -118,11 +119,14 @@ def validate_upload(kind: str, tmp: Path, filename: str, *, scratch: Path, bundl
     raise UploadError(f"unknown asset kind {kind!r} (known: {', '.join(KINDS)})")
 
 
-def _core(fn, path, *, scratch: Path | None = None):
+def _core(fn, path, *, scratch: Path | None = None, name: str | None = None):
     try:
         return fn(path)
     except InputError as err:
-        raise UploadError(_without_path(str(err), path, scratch)) from err
+        message = _without_path(str(err), path, scratch)
+        if name is not None:  # the server's file name of a single-file upload is the client's name
+            message = message.replace(path.name, name)
+        raise UploadError(message) from err
 
 
 def _without_path(message: str, path: Path, scratch: Path | None = None) -> str:
