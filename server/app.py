@@ -91,6 +91,7 @@ def create_app(settings: Settings) -> FastAPI:
                               "'Authorization: Bearer <token>'.")
     app.state.store, app.state.settings, app.state.runner = store, settings, runner
     app.state.metrics = Metrics(store)
+    app.state.streams = {}  # owner -> open event streams (see routers.jobs.job_events)
     for r in (ops.router, assets.router, jobs.router):
         app.include_router(r)
 

@@ -45,12 +45,12 @@ def _cmd_serve(args) -> int:
 
     from .app import configure_logging, create_app
 
-    from .storage import DataDirLocked, Store
+    from .storage import DataDirLocked, lock_data_dir
 
     settings = settings_from_args(args)
     # one service per data directory: a second one exits here, before it touches any job
     try:
-        lock = Store(settings.data_dir).lock()
+        lock = lock_data_dir(settings.data_dir)
     except DataDirLocked as err:
         raise SystemExit(f"handretarget serve: {err}") from None
     configure_logging()

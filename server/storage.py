@@ -1,11 +1,12 @@
 """The embedded store: SQLite (WAL) for tokens, assets' metadata and jobs; files on disk for
 blobs and artifacts, all under one data directory::
 
-    DATA/service.sqlite3          tokens, assets, jobs
+    DATA/service.sqlite3          tokens, assets, jobs, the sha256 of each stored blob and artifact
+    DATA/service.lock             held (flock) by the running service: one service per directory
     DATA/blobs/ab/<sha256><ext>   uploaded content, addressed by its sha256 (shared by owners)
     DATA/blobs/ab/<sha256>.d/     an unpacked robot bundle (URDF / MJCF zip)
     DATA/jobs/<job id>/           a finished job's artifacts (appears whole: renamed into place)
-    DATA/tmp/                     uploads and job outputs being written
+    DATA/tmp/                     uploads and job outputs being written (emptied at start)
     DATA/cache/atlas/             built contact atlases, reused by later jobs (safe to delete)
     DATA/logs/<job id>.log        each job process's output
 
@@ -63,6 +64,30 @@ CREATE TABLE IF NOT EXISTS artifacts (
 
 class DataDirLocked(RuntimeError):
     """Another running service holds the data directory's lock."""
+
+
+def lock_data_dir(root):
+    """Lock the data directory ``root`` for this process (``fcntl.flock`` on DATA/service.lock,
+    held while the returned file stays open; the kernel drops it when the process dies, even by
+    kill -9). ``DataDirLocked`` naming the holder's pid when another service holds it. Taken
+    before the store is opened, so a second service changes nothing."""
+    import fcntl
+
+    root = Path(root).resolve()
+    root.mkdir(parents=True, exist_ok=True)
+    handle = open(root / "service.lock", "a+")
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.seek(0)
+        holder = handle.read().strip() or "unknown"
+        handle.close()
+        raise DataDirLocked(f"the data directory {root} is in use by another `handretarget serve` (pid {holder}); "
+                            "stop it first, or give this one another --data-dir") from None
+    handle.truncate(0)
+    handle.write(str(os.getpid()))
+    handle.flush()
+    return handle
 
 
 def _marks(values) -> str:
@@ -213,27 +238,9 @@ class Store:
         finally:
             db.close()
 
-    # ---- the running service's lock ----------------------------------------------------------
     def lock(self):
-        """Lock the data directory for this process (``fcntl.flock`` on DATA/service.lock, held
-        while the returned file stays open; the kernel drops it when the process dies, even by
-        kill -9). ``DataDirLocked`` when another service holds it."""
-        import fcntl
-
-        path = self.paths.root / "service.lock"
-        handle = open(path, "a+")
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            handle.seek(0)
-            holder = handle.read().strip() or "unknown"
-            handle.close()
-            raise DataDirLocked(f"the data directory {self.paths.root} is in use by another `handretarget serve` "
-                                f"(pid {holder}); stop it first, or give this one another --data-dir") from None
-        handle.truncate(0)
-        handle.write(str(os.getpid()))
-        handle.flush()
-        return handle
+        """:func:`lock_data_dir` of this store's directory."""
+        return lock_data_dir(self.paths.root)
 
     # ---- tokens ------------------------------------------------------------------------------
     def create_token(self, owner: str, admin: bool = False) -> str:

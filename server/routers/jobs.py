@@ -171,7 +171,7 @@ async def job_events(request: Request, job_id: str = Path(..., pattern=JOB_ID), 
     streams per owner at once (429 beyond)."""
     await run_in_threadpool(_own_job, store, owner, job_id)
     app = request.app
-    streams = app.state.__dict__.setdefault("streams", {})
+    streams = app.state.streams  # owner -> open streams (create_app makes it)
     if streams.get(owner, 0) >= settings.max_streams_per_owner:
         raise HTTPException(429, f"you already have {streams[owner]} event streams open (the limit is "
                                  f"{settings.max_streams_per_owner}); close one or poll GET /v1/jobs/{{id}}",
