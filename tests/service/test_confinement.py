@@ -239,13 +239,16 @@ def test_usd_layer_composing_another_owners_blob_is_refused(svc, inputs, arc):
 @pytest.mark.parametrize("arc", ["subLayers", "references", "payload"])
 def test_usd_layer_arc_to_a_missing_or_relative_file_is_refused_alike(svc, arc, tmp_path):
     # Finding (same): no existence oracle through composition: /etc/passwd, a missing absolute
-    # path and a relative sibling all answer the same 422 (none of them is opened).
+    # path and a relative sibling all answer the same 422 (none of them is opened), and it names
+    # the arc with the path as written (328eb67 answered USD's own "cannot open" text instead).
     client = svc.client(f"confine-usd-probe-{arc}")
     answers = []
     for target in ("/etc/passwd", str(tmp_path / "missing.usda"), "./sibling.usda"):
         detail = _refused(client, "rig", _referencing_layer(arc, target), "probe.usda")
         answers.append(detail.replace(target, "<REF>"))
     assert answers[0] == answers[1] == answers[2], answers
+    label = {"subLayers": "subLayers", "references": "references of </Hand>", "payload": "payload of </Hand>"}[arc]
+    assert f"probe.usda: {label} @<REF>@" in answers[0], answers[0]
     _no_server_path(answers[0], svc)
 
 
