@@ -27,6 +27,7 @@ memory only the cluster's own limits (e.g. ``dask worker --memory-limit``) bound
 from __future__ import annotations
 
 import argparse
+import errno
 import logging
 import os
 import shutil
@@ -47,6 +48,10 @@ RUNNING = (JobState.RUNNING,)
 #: request field -> (asset kind, name of the input in the core's provenance)
 INPUT_ASSETS = {"clip": ("clip", "clip"), "rig": ("rig", "target_rig"), "annotations": ("annotations", "annotations"),
                 "source_rig": ("rig", "source_rig")}
+
+
+#: The stage of a job queued again because the disk was full (see JobRunner's back-off).
+DISK_FULL_STAGE = "waiting for disk space"
 
 
 class Orphaned(SystemExit):
@@ -105,6 +110,10 @@ def run_job(store: Store, job_id: str, settings: Settings, *, parent: int | None
             if asset is None:  # checked at submission; only a damaged store gets here
                 raise RetargetError(f"{field}: asset {asset_id} is gone from the store")
             paths[field] = store.asset_path(asset)
+            if kind == "rig":  # the stored rig is one flat layer: it may compose no other file
+                from retarget_core.rig.usd_io import check_confined_layers
+
+                check_confined_layers(paths[field], paths[field])
         config = load_config(None, request.preset, request.overrides)
         # built atlases are kept per (source, target, annotations): a rig's second job skips the build
         executor = Executor(workers=settings.frame_workers, dask_scheduler=settings.dask_scheduler,
@@ -135,6 +144,19 @@ def run_job(store: Store, job_id: str, settings: Settings, *, parent: int | None
         raise
     except RetargetError as err:  # bad input that only shows when the job runs
         return fail(str(err))
+    except OSError as err:
+        if err.errno != errno.ENOSPC:
+            log.exception("job %s: internal error", job_id)
+            return fail(f"internal error ({type(err).__name__}): {err}")
+        # the service's disk, not the job: queue it again without spending an attempt; the runner
+        # waits DISK_FULL_BACKOFF_S before it claims jobs again
+        shutil.rmtree(out, ignore_errors=True)
+        log.error("job %s: the disk is full (%s); queued again", job_id, err)
+        store.update_job(job_id, only_if_state=RUNNING, state=JobState.QUEUED, stage=DISK_FULL_STAGE, pid=None,
+                         progress=0.0, frames_done=0, attempts=max(job.attempts - 1, 0),
+                         error="the service's disk is full (no space left on device); the job is queued again and "
+                               "runs once space is freed")
+        return JobState.QUEUED
     except Exception as err:  # noqa: BLE001 - a bug: the job fails, the traceback goes to the log
         log.exception("job %s: internal error", job_id)
         return fail(f"internal error ({type(err).__name__}): {err}")

@@ -23,11 +23,15 @@ import threading
 import time
 from pathlib import Path
 
+from .job_process import DISK_FULL_STAGE
 from .schemas import JobState
 from .settings import Settings
 from .storage import JobRow, Store
 
 log = logging.getLogger("server.runner")
+
+#: Seconds the runner claims no job after one was queued again because the disk was full.
+DISK_FULL_BACKOFF_S = 30.0
 
 
 def _alive_job_process(pid: int | None, job_id: str) -> bool:
@@ -114,6 +118,7 @@ class JobRunner:
     def __init__(self, store: Store, settings: Settings):
         self.store, self.settings = store, settings
         self.children: dict[str, subprocess.Popen] = {}
+        self._hold_until = 0.0  # monotonic time before which no job is claimed (a full disk)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="job-runner", daemon=True)
         self.logs = store.paths.root / "logs"
@@ -195,7 +200,13 @@ class JobRunner:
             self.children.pop(job_id)
             if job is not None and job.state == JobState.RUNNING:  # died without a final state
                 self._requeue_or_fail(job, f"the job process exited with code {proc.returncode}")
+            elif job is not None and job.state == JobState.QUEUED and job.stage == DISK_FULL_STAGE:
+                # the disk was full: claim nothing for a while rather than fail jobs in a loop
+                self._hold_until = time.monotonic() + DISK_FULL_BACKOFF_S
+                log.error("the disk is full; no job is started for %g s", DISK_FULL_BACKOFF_S)
             self._prune_cache()
+        if time.monotonic() < self._hold_until:
+            return
         while len(self.children) < self.settings.job_slots and not self._stop.is_set():
             job = self.store.claim_next_job()
             if job is None:

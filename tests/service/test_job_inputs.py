@@ -175,3 +175,42 @@ def test_a_value_error_inside_the_run_is_an_internal_error_with_its_traceback(tm
     assert len(errors) == 1 and errors[0].exc_info and errors[0].exc_info[0] is ValueError
     assert "Traceback" in caplog.text and "broken_pairing" in caplog.text
     assert not store.paths.job(job_id).exists() and not list(store.paths.tmp.glob("*.out"))
+
+
+def test_a_full_disk_queues_the_job_again_without_spending_an_attempt(tmp_path, inputs, caplog, monkeypatch):
+    """Issue 16 (Low: "a full disk fails the job for good with a 500"): ENOSPC is injected at the
+    storage layer with monkeypatch (a disk cannot be filled in CI): Store.publish_artifacts raises
+    it as a full disk would. The job is queued again with a clear message and its attempt back,
+    its scratch output removed; a job process that ends so makes the runner hold off claiming."""
+    import errno
+    import subprocess
+    import sys
+
+    from server.job_process import DISK_FULL_STAGE, run_job
+    from server.runner import DISK_FULL_BACKOFF_S, JobRunner
+    from server.schemas import JobState
+    from server.settings import Settings
+    from server.storage import Store
+
+    def full_disk(self, job_id, folder):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Store, "publish_artifacts", full_disk)
+    store, job_id = _running_job(tmp_path / "data", _files(inputs, inputs["clip"]), overrides=FAST)
+    attempts = store.job(job_id).attempts
+    with caplog.at_level(logging.INFO, logger="server.job"):
+        state = run_job(store, job_id, Settings(data_dir=store.paths.root))
+    job = store.job(job_id)
+    assert state == job.state == JobState.QUEUED
+    assert job.stage == DISK_FULL_STAGE and "disk is full" in job.error
+    assert job.attempts == max(attempts - 1, 0)
+    assert not list(store.paths.tmp.glob("*.out"))
+    # the runner sees the job process end with its job queued again for the disk: it claims nothing
+    runner = JobRunner(store, Settings(data_dir=store.paths.root))
+    proc = subprocess.Popen([sys.executable, "-c", "pass"], start_new_session=True)
+    proc.wait()
+    runner.children[job_id] = proc
+    runner._tick()
+    assert runner._hold_until - DISK_FULL_BACKOFF_S <= __import__("time").monotonic() < runner._hold_until
+    runner._tick()
+    assert store.job(job_id).state == JobState.QUEUED and not runner.children  # not claimed during the hold
