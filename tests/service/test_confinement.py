@@ -308,3 +308,31 @@ def test_foreign_mesh_vertices_never_stored(svc, foreign):
         with pytest.raises(ServiceError):
             client.upload_bytes("rig", _zip({"probe.urdf": _urdf(ref)}), "geo.zip")
     assert len(sphere) > 600 and client.assets("rig") == []
+
+
+def test_job_refuses_a_stored_layer_that_composes_another(svc, inputs):
+    # Finding: "... is composed at upload and at every job; ... the job's rig.usda artifact
+    # returned that owner's whole rig". A rig stored before uploads were flattened (simulated by
+    # rewriting the attacker's own blob in the store) is refused by the job before composing.
+    from .conftest import FAST
+
+    victim = svc.client("confine-job-victim")
+    private = victim.upload("rig", inputs["rig"], name="private3.usda")
+    attacker = svc.client("confine-job-attacker")
+    ids = {k: attacker.upload(kind, inputs[k])["id"]
+           for k, kind in (("clip", "clip"), ("rig", "rig"), ("annotations", "annotations"))}
+    own_blob = _blob_of(svc, ids["rig"])
+    own_blob.write_bytes(_referencing_layer("references", str(_blob_of(svc, private["id"]))))
+    # (the store's integrity check may refuse the rewritten blob at submission already: fine too;
+    # the job's own check, usd_io.check_confined_layers in server/job_process.py, covers a layer
+    # stored raw before this fix, whose recorded hash still matches)
+    try:
+        job = attacker.submit(clip=ids["clip"], rig=ids["rig"], annotations=ids["annotations"], overrides=FAST)
+    except ServiceError as err:
+        assert err.status in (409, 410, 422) and "Skeleton" not in err.detail, err
+        return
+    done = attacker.wait(job["id"], timeout=300)
+    assert done["state"] == "failed", done
+    assert "may not compose other layers" in done["error"] and str(svc.data_dir) not in done["error"], done
+    with pytest.raises(ServiceError):
+        attacker.artifact(job["id"], "rig.usda")
