@@ -317,3 +317,17 @@ def test_usd_flatten_drops_texture_paths(tmp_path, rig_layer):
     flat = Sdf.Layer.FindOrOpen(str(tmp_path / "flat.usda"))
     assert layer_asset_paths(flat) == []
     assert load_rig(tmp_path / "flat.usda", confine_to=tmp_path / "flat.usda").n_dofs == load_rig(rig_layer).n_dofs
+
+
+def test_usd_value_clips_outside_are_refused(tmp_path, rig_layer):
+    # finding 2: value clips open other layers when values are read, like a reference does
+    root = tmp_path / "upload"
+    root.mkdir()
+    layer = root / "clips.usda"
+    layer.write_text('#usda 1.0\ndef "Hand" (\n    clips = {\n        dictionary default = {\n'
+                     f'            asset[] assetPaths = [@{rig_layer}@]\n'
+                     '            string primPath = "/human_alt"\n        }\n    }\n)\n{\n}\n')
+    with pytest.raises(InputError, match=r"clips of </Hand> @" + re.escape(str(rig_layer)) + "@"):
+        load_rig(layer, confine_to=root)
+    with pytest.raises(InputError, match="may not compose other layers"):
+        load_rig(layer, confine_to=layer)
