@@ -242,11 +242,14 @@ def propose(body: ProposeRequest, response: Response, owner: str = Depends(curre
     from retarget_core.transfer.annotations import save_annotations
     from retarget_core.transfer.propose import propose_annotations
 
+    def stored_rig(path):  # a stored rig is one flat layer: it may compose no other file
+        return load_rig(path, confine_to=path)
+
     target_asset = owned(store, owner, body.target_rig, "rig", "target_rig")
-    source = (load_rig(store.asset_path(owned(store, owner, body.source_rig, "rig", "source_rig")))
-              if body.source_rig else resolve_rig(DEFAULT_SOURCE_RIG))
+    source_path = store.asset_path(owned(store, owner, body.source_rig, "rig", "source_rig")) if body.source_rig else None
     try:
-        annotations = propose_annotations(source, load_rig(store.asset_path(target_asset)))
+        source = stored_rig(source_path) if source_path is not None else resolve_rig(DEFAULT_SOURCE_RIG)
+        annotations = propose_annotations(source, stored_rig(store.asset_path(target_asset)))
     except InputError as err:
         raise HTTPException(422, f"cannot propose annotations: {err}") from err
     name = f"{source.name}_to_{target_asset.info.get('name', 'target')}.json"
