@@ -32,6 +32,8 @@ import sys
 import time
 from pathlib import Path
 
+from retarget_core.procmem import peak_rss_bytes, tree_memory_bytes
+
 MIB = 1024 * 1024
 log = logging.getLogger("server.isolation")
 
@@ -47,58 +49,6 @@ class MemoryLimitExceeded(Exception):
 
 class ValidatorCrashed(Exception):
     """The child died without an answer (a crash in a reader on a hostile file)."""
-
-
-# ---- memory of a process tree ---------------------------------------------------------------
-
-def process_memory_bytes(pid: int) -> int:
-    """Proportional set size of a process (bytes): pages shared with forked workers are
-    counted once across them, unlike RSS. 0 when the process is gone."""
-    try:
-        with open(f"/proc/{pid}/smaps_rollup") as fh:
-            for line in fh:
-                if line.startswith("Pss:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return 0
-
-
-def descendants(root: int) -> list[int]:
-    """Pids of every descendant of ``root`` (Linux /proc), children before grandchildren."""
-    children: dict[int, list[int]] = {}
-    for entry in os.scandir("/proc"):
-        if not entry.name.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry.name}/stat") as fh:
-                ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
-        except (OSError, ValueError, IndexError):
-            continue
-        children.setdefault(ppid, []).append(int(entry.name))
-    out, stack = [], list(children.get(root, []))
-    while stack:
-        pid = stack.pop()
-        out.append(pid)
-        stack += children.get(pid, [])
-    return out
-
-
-def peak_rss_bytes(pid: int | str = "self") -> int:
-    """The peak resident set size (``VmHWM``) of a process since it started (its exec), bytes."""
-    try:
-        with open(f"/proc/{pid}/status") as fh:
-            for line in fh:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return 0
-
-
-def tree_memory_bytes(root: int) -> int:
-    """PSS (bytes) of ``root`` and all its descendants."""
-    return sum(process_memory_bytes(pid) for pid in [root, *descendants(root)])
 
 
 # ---- upload validation in a child process -----------------------------------------------------

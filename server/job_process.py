@@ -190,7 +190,8 @@ class Watchdog:
 
     def check(self) -> str | None:
         """The limit exceeded now, as the job's error, or None."""
-        from .isolation import MIB, peak_rss_bytes, tree_memory_bytes
+        from retarget_core.procmem import peak_rss_bytes, tree_memory_bytes
+        from .isolation import MIB
 
         elapsed = time.monotonic() - self.started
         if elapsed > self.time_limit_s:
@@ -213,7 +214,7 @@ class Watchdog:
                 return
 
     def _fail(self, error: str) -> None:
-        from .isolation import descendants
+        from retarget_core.procmem import descendants
 
         log.error("job %s: %s", self.job_id, error)
         try:  # failed first: whatever the job's own thread writes after this is refused (only_if_state)

@@ -13,6 +13,7 @@ import numpy as np
 
 from ..clip.demo import SOURCE_RESOLUTION, build_demo_timeline, clip_from_timeline, source_rig
 from ..pairing.dense import pair_contacts
+from ..procmem import tree_memory_bytes
 from ..rig.demo_hands import demo_hand
 from ..solve.config import RetargetConfig
 from ..solve.frame_solver import solve_frame
@@ -20,39 +21,6 @@ from ..solve.problem import Problem, method_objective
 from ..solve.targets import contact_targets, marker_targets
 from ..transfer.clip_transfer import transfer_clip
 from ..transfer.propose import propose_annotations
-
-
-def _memory_bytes(pid: int) -> int:
-    """Proportional set size of a process (bytes): pages shared with forked workers are
-    counted once across them, unlike RSS."""
-    try:
-        with open(f"/proc/{pid}/smaps_rollup") as fh:
-            for line in fh:
-                if line.startswith("Pss:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return 0
-
-
-def _tree_memory_bytes(root: int) -> int:
-    """Memory (PSS, bytes) of ``root`` and all its descendants (Linux /proc)."""
-    children: dict[int, list[int]] = {}
-    for entry in os.scandir("/proc"):
-        if not entry.name.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry.name}/stat") as fh:
-                ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
-        except (OSError, ValueError, IndexError):
-            continue
-        children.setdefault(ppid, []).append(int(entry.name))
-    total, stack = 0, [root]
-    while stack:
-        pid = stack.pop()
-        total += _memory_bytes(pid)
-        stack += children.get(pid, [])
-    return total
 
 
 class PeakMemory:
@@ -67,7 +35,7 @@ class PeakMemory:
 
     def _run(self):
         while not self._stop.is_set():
-            self.peak = max(self.peak, _tree_memory_bytes(os.getpid()))
+            self.peak = max(self.peak, tree_memory_bytes(os.getpid()))
             self._stop.wait(self.interval)
 
     def __enter__(self):
@@ -79,7 +47,7 @@ class PeakMemory:
         self._stop.set()
         if self.available:
             self._thread.join()
-            self.peak = max(self.peak, _tree_memory_bytes(os.getpid()))
+            self.peak = max(self.peak, tree_memory_bytes(os.getpid()))
 
 
 def benchmark_clip(name: str = "bottle_pick_place", n_frames: int = 1000):
