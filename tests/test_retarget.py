@@ -190,7 +190,7 @@ def test_limits_that_exclude_the_rest_pose(setup):
 
 @pytest.mark.parametrize("setting, key, message", [
     ("solver.maxevals=5", "solver.maxevals", "unknown key"),
-    ("weights.lambda_m=-1", "weights.lambda_m", "non-negative"),
+    ("weights.lambda_m=-1", "weights.lambda_m", "must be in [0, 1000000]"),  # the range of issue 16's bounds
     ("solver", "solver", "KEY=VALUE"),
 ])
 def test_bad_config_overrides_exit_2(setup, tmp_path, setting, key, message):
