@@ -327,6 +327,21 @@ def _urdf_geometry(geometry, urdf_dir: Path, *, source, element, conf: Confineme
     return None
 
 
+
+def _model_file(path, confine_to, what: str):
+    """(path, Confinement or None, the name errors show) of a robot model file, checked to lie
+    inside ``confine_to`` when given, and to exist."""
+    path = Path(path)
+    conf = Confinement(confine_to) if confine_to is not None else None
+    if conf is not None:
+        path = conf.check_file(path, source=path.name, what=what)
+        source = conf.shown(path)
+    else:
+        source = str(path)
+    if not path.is_file():
+        raise InputError(f"{what} not found", source=source)
+    return path, conf, source
+
 def load_urdf(path, *, wrapper_resolution: float = 0.002, confine_to=None) -> Rig:
     """Load a robot hand from a URDF file.
 
@@ -356,15 +371,7 @@ def load_urdf(path, *, wrapper_resolution: float = 0.002, confine_to=None) -> Ri
     """
     import yourdfpy
 
-    path = Path(path)
-    conf = Confinement(confine_to) if confine_to is not None else None
-    if conf is not None:
-        path = conf.check_file(path, source=path.name, what="URDF file")
-        source = conf.shown(path)
-    else:
-        source = str(path)
-    if not path.is_file():
-        raise InputError("URDF file not found", source=source)
+    path, conf, source = _model_file(path, confine_to, "URDF file")
     if conf is not None:
         _no_doctype(path, source=source)
     try:
@@ -579,15 +586,7 @@ def load_mjcf(path, *, root_body: str | None = None, wrapper_resolution: float =
     """
     import mujoco
 
-    path = Path(path)
-    conf = Confinement(confine_to) if confine_to is not None else None
-    if conf is not None:
-        path = conf.check_file(path, source=path.name, what="MJCF file")
-        source = conf.shown(path)
-    else:
-        source = str(path)
-    if not path.is_file():
-        raise InputError("MJCF file not found", source=source)
+    path, conf, source = _model_file(path, confine_to, "MJCF file")
     if conf is not None:
         _check_mjcf_files(path, conf, source=source)
     try:
