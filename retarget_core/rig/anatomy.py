@@ -1,11 +1,7 @@
-"""Hand anatomy of a rig: its finger chains, its palm vertices, the free root as a rigid
-transform, and the paper's marker sites placed by the hand's geometry.
-
-Works on any generated hand whose finger joints are named ``<finger><k>`` with a
-``<finger><k>_flex`` DOF (see :mod:`retarget_core.rig.handgen`) and a palm joint ``wrist``, and
-on any rig whose first six DOFs are the standard free root (:func:`retarget_core.rig.model.free_root`).
-Moved here unchanged from the demo clip generator (``clip/grasp.py``, ``clip/demo.py``) so the
-pipeline, the transfer and the demo share them; a later issue replaces them with a hand model.
+"""Hand anatomy of a rig for its consumers (the demo clip generator, the proposer, the source
+markers): its finger chains, its palm vertices, the free root as a rigid transform, and the
+paper's marker sites, all read from the hand model (:mod:`retarget_core.rig.hand_model`), so
+they work on any rig the hand model reads, whatever its joint names and bone rolls.
 """
 
 from __future__ import annotations
@@ -14,11 +10,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..mesh.surface_points import closest_surface_points
+from ..mesh.surface_points import SurfacePoints, closest_surface_points
+from .hand_model import FINGER_NAMES, HandModel, hand_model
 from .model import Rig
 
-FINGER_NAMES = ("thumb", "index", "middle", "ring", "pinky")
-
+__all__ = ["FINGER_NAMES", "Finger", "hand_fingers", "palm_vertices", "source_markers", "closest_hand_points",
+           "set_root_transform", "root_transform", "euler_xyz_from_matrix"]
 
 # ---- the free root as a rigid transform -------------------------------------------------------
 def euler_xyz_from_matrix(rotation: np.ndarray) -> np.ndarray:
@@ -57,8 +54,8 @@ def root_transform(rig: Rig, q: np.ndarray) -> np.ndarray:
 # ---- fingers -----------------------------------------------------------------------------------
 @dataclass
 class Finger:
-    """One finger chain: joint indices, their flex DOF indices, and the surface vertices each
-    joint's link owns (vertex ids whose largest skin weight is that joint)."""
+    """One finger chain: joint indices (knuckle to distal), their flexion DOF indices (-1 where a
+    joint has none), and the surface vertices each joint's link owns (largest skin weight)."""
 
     name: str
     joints: list[int]
@@ -67,67 +64,71 @@ class Finger:
     closing_rate: np.ndarray = field(default_factory=lambda: np.ones(0))
 
 
-def hand_fingers(rig: Rig) -> list[Finger]:
-    """The fingers of a generated hand, in FINGER_NAMES order."""
-    dense = rig.surface.dense_weights(rig.n_joints)
-    owner = dense.argmax(axis=1)
+def hand_fingers(rig: Rig, model: HandModel | None = None) -> list[Finger]:
+    """The fingers of a hand, thumb first and then across the palm (the hand model's names)."""
+    model = model or hand_model(rig)
     fingers = []
-    for name in FINGER_NAMES:
-        joints, flex = [], []
-        k = 1
-        while True:
-            jname = f"{name}{k}"
-            if jname not in rig.joint_names:
-                break
-            j = rig.joint_index(jname)
-            joints.append(j)
-            flex.append(rig.dof_index(f"{jname}_flex") if f"{jname}_flex" in rig.dof_names else -1)
-            k += 1
-        if joints:
-            rate = np.linspace(0.8, 1.1, len(joints)) if name != "thumb" else np.linspace(0.7, 1.0, len(joints))
-            fingers.append(Finger(name, joints, flex, [np.nonzero(owner == j)[0] for j in joints], rate))
+    for f in model.fingers:
+        n = len(f.joints)
+        rate = np.linspace(0.7, 1.0, n) if f.is_thumb else np.linspace(0.8, 1.1, n)
+        fingers.append(Finger(f.name, list(f.joints), list(f.flex_dofs), list(f.link_vertices), rate))
     return fingers
 
 
-def palm_vertices(rig: Rig) -> np.ndarray:
-    """Ids of surface vertices owned by the palm joint ("wrist", else the root) on the palm side
-    (normal within 45 degrees of -Z in the hand frame)."""
-    dense = rig.surface.dense_weights(rig.n_joints)
-    palm_joint = rig.joint_index("wrist") if "wrist" in rig.joint_names else 0
+def palm_vertices(rig: Rig, model: HandModel | None = None) -> np.ndarray:
+    """Ids of the palm's surface vertices on the palmar side (normal within 45 degrees of the
+    palm's palmar normal)."""
+    model = model or hand_model(rig)
     normals = rig.surface.vertex_normals()
-    return np.nonzero((dense.argmax(axis=1) == palm_joint) & (normals[:, 2] < -0.7))[0]
+    ids = model.palm_vertices
+    return ids[normals[ids] @ model.palmar > 0.7]
+
+
+def closest_hand_points(rig: Rig, model: HandModel, points: np.ndarray) -> SurfacePoints:
+    """The points of the hand's own surface (not a forearm or a mount) closest to points (N, 3)."""
+    faces = model.hand_faces(rig.surface.faces)
+    sp = closest_surface_points(rig.surface.vertices, rig.surface.faces[faces], points)
+    return SurfacePoints(faces[sp.faces], sp.barycentric)
 
 
 # ---- source markers ---------------------------------------------------------------------------
-def source_markers(rig: Rig) -> tuple[list[str], np.ndarray, np.ndarray]:
-    """The paper's 25 marker names placed on a generated hand by its geometry (rest pose):
-    <Finger>Base/Middle/Tip on the back of the finger over its first, second and third joints,
-    <Finger>Fingertip at the end of the finger, BackIndex/BackRing on the back of the palm,
-    WristLeft (thumb side) / WristRight at the sides of the wrist, PalmRoot on the palm near
-    the wrist. Returns (names, faces (M,), barycentric (M, 3)); fingers the hand lacks are skipped."""
-    kin = rig.kinematics()
-    world = kin.bind_world
+#: metres: how far off the bone (toward the back or the palm) marker and curve sites are sought
+#: before they are put on the surface; at least twice the finger's girth on thick fingers.
+MARKER_REACH = 0.03
+
+
+def marker_sites(rig: Rig, model: HandModel) -> dict[str, np.ndarray]:
+    """The paper's 25 marker names and their sites (3,) near the surface, at rest:
+    <Finger>Base/Middle/Tip on the back of the finger over its first, second and third
+    articulations, <Finger>Fingertip at the end of the finger, BackIndex/BackRing on the back of
+    the palm, WristLeft (thumb side) / WristRight at the sides of the wrist, PalmRoot on the palm
+    near the wrist. Fingers the hand lacks are skipped."""
     targets: dict[str, np.ndarray] = {}
-    reach = 0.03
-    for finger in hand_fingers(rig):
+    for finger in model.fingers:
         title = finger.name.capitalize()
-        frames = [world[j] for j in finger.joints]
-        back = frames[0][:3, 2]
+        reach = max(MARKER_REACH, 2.0 * finger.girth)
         for label, k in (("Base", 0), ("Middle", 1), ("Tip", 2)):
-            if k < len(frames):
-                targets[f"{title}{label}"] = frames[k][:3, 3] + back * reach
-        tip_vertices = rig.surface.vertices[finger.link_vertices[-1]]
-        along = frames[-1][:3, 1]
-        targets[f"{title}Fingertip"] = tip_vertices[np.argmax(tip_vertices @ along)] + along * 0.005
-    wrist = world[rig.joint_index("wrist")] if "wrist" in rig.joint_names else world[0]
-    origin, x_axis, y_axis, z_axis = wrist[:3, 3], wrist[:3, 0], wrist[:3, 1], wrist[:3, 2]
-    for label, finger in (("BackIndex", "index1"), ("BackRing", "ring1")):
-        if finger in rig.joint_names:
-            mid = 0.5 * (origin + world[rig.joint_index(finger)][:3, 3])
-            targets[label] = mid + z_axis * reach
-    targets["WristLeft"] = origin - x_axis * 0.06 + y_axis * 0.005
-    targets["WristRight"] = origin + x_axis * 0.06 + y_axis * 0.005
-    targets["PalmRoot"] = origin + y_axis * 0.02 - z_axis * reach
+            if k < len(finger.segments):
+                seg = finger.segments[k]
+                targets[f"{title}{label}"] = seg.start - seg.palmar * reach
+        targets[f"{title}Fingertip"] = finger.tip + finger.segments[-1].direction * 0.005
+    reach = max(MARKER_REACH, model.palm_thickness)
+    for label, name in (("BackIndex", "index"), ("BackRing", "ring")):
+        finger = model.finger(name)
+        if finger is not None:
+            targets[label] = 0.5 * (model.wrist + finger.knuckle) - model.palmar * reach
+    side = max(0.06, 0.75 * model.palm_width)
+    targets["WristLeft"] = model.wrist + model.lateral * side + model.forward * 0.005
+    targets["WristRight"] = model.wrist - model.lateral * side + model.forward * 0.005
+    targets["PalmRoot"] = model.wrist + model.forward * 0.02 + model.palmar * reach
+    return targets
+
+
+def source_markers(rig: Rig, model: HandModel | None = None) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """The marker sites of :func:`marker_sites` put on the hand's surface.
+    Returns (names, faces (M,), barycentric (M, 3))."""
+    model = model or hand_model(rig)
+    targets = marker_sites(rig, model)
     names = list(targets)
-    points = closest_surface_points(rig.surface.vertices, rig.surface.faces, np.array([targets[n] for n in names]))
+    points = closest_hand_points(rig, model, np.array([targets[n] for n in names]))
     return names, points.faces, points.barycentric

@@ -168,6 +168,8 @@ class FingerModel:
     link_vertices: list[np.ndarray]
     length: float
     girth: float
+    flex_dofs: list[int] = field(default_factory=list)
+    abduction_dofs: list[int] = field(default_factory=list)
 
     @property
     def is_thumb(self) -> bool:
@@ -511,7 +513,10 @@ def hand_model(rig: Rig, mapping: HandMapping | None = None) -> HandModel:
     knuckle_mean = np.mean([chain_list[i].points[starts[i]] for i in others], axis=0) if others else wrist
     fingers = []
     for i, c in enumerate(chain_list):
-        fingers.append(_finger_model(names[i], c, starts[i], palmar, forward, knuckle_mean, owner, vertices))
+        finger = _finger_model(names[i], c, starts[i], palmar, forward, knuckle_mean, owner, vertices)
+        finger.flex_dofs = [_dof_about(rig, world, j, finger.segment_of(j).flexion_axis) for j in finger.joints]
+        finger.abduction_dofs = [_dof_about(rig, world, j, finger.segment_of(j).abduction_axis) for j in finger.joints]
+        fingers.append(finger)
     fingers.sort(key=lambda f: FINGER_NAMES.index(f.name) if f.name in FINGER_NAMES else len(FINGER_NAMES))
 
     width_points = [f.knuckle for f in fingers if not f.is_thumb]
@@ -787,3 +792,15 @@ def _finger_model(name, chain: _Chain, start, palmar, forward, knuckle_mean, own
     metacarpals = [j for g in chain.groups[:start] for j in g]
     return FingerModel(name, joints, metacarpals, segments, chain.tip.copy(), chain.tip_vertex, link_vertices,
                        length, girth)
+
+
+def _dof_about(rig: Rig, world: np.ndarray, joint: int, axis: np.ndarray, min_alignment: float = 0.7) -> int:
+    """Index of the rotational DOF of ``joint`` whose world axis is best aligned (either sign, at
+    least ``min_alignment``) with ``axis``; -1 when there is none."""
+    best, best_dot = -1, min_alignment
+    for k, d in enumerate(rig.dofs):
+        if d.joint == joint and d.kind == "rotate":
+            dot = abs(float((world[joint][:3, :3] @ d.axis) @ axis))
+            if dot >= best_dot:
+                best, best_dot = k, dot
+    return best
