@@ -95,6 +95,10 @@ class Truth:
     product of :func:`move` transforms and :func:`mirror` reflections; bind-pose bakes are not
     in it).
     stripped_dofs: the DOFs :func:`strip_dofs` removed (deep copies, as they were).
+    palm_origin: (3,) world position of the physical wrist end of the palm at the bind pose
+    (the demo palm joint's origin, carried through moves and mirrors). It differs from the
+    palm joint's position when the palm joint is the free root and the hand was moved: the
+    root stays at the world origin (identity rest) while the hand goes elsewhere.
     source: the demo hand's name; steps: the variants applied, in order.
     """
 
@@ -107,6 +111,7 @@ class Truth:
     metacarpals: dict[str, str] = field(default_factory=dict)
     to_variant: np.ndarray = field(default_factory=lambda: np.eye(4))
     stripped_dofs: list[Dof] = field(default_factory=list)
+    palm_origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
     source: str = ""
     steps: list[str] = field(default_factory=list)
 
@@ -143,6 +148,7 @@ def truth_of(rig: Rig) -> Truth:
         palmar=palmar,
         original={n: n for n in names},
         dof_original={d.name: (d.name, 1.0, 0.0) for d in rig.dofs},
+        palm_origin=bind[names.index("wrist") if "wrist" in names else 0][:3, 3].copy(),
         source=rig.name,
     )
 
@@ -373,6 +379,7 @@ def move(rig: Rig, truth: Truth, transform: np.ndarray) -> tuple[Rig, Truth]:
     t = truth.copy()
     t.palmar = {k: rot @ v for k, v in truth.palmar.items()}
     t.to_variant = transform @ truth.to_variant
+    t.palm_origin = rot @ truth.palm_origin + transform[:3, 3]
     t.steps.append("move")
     return out, t
 
@@ -416,6 +423,7 @@ def mirror(rig: Rig, truth: Truth) -> tuple[Rig, Truth]:
     t.handedness = "left" if truth.handedness == "right" else "right"
     t.palmar = {k: d3 @ v for k, v in truth.palmar.items()}
     t.to_variant = _FLIP @ truth.to_variant
+    t.palm_origin = d3 @ truth.palm_origin
     for name, (orig, scale, offset) in truth.dof_original.items():
         s = signs.get(name, 1.0)
         t.dof_original[name] = (orig, s * scale, s * offset)
@@ -447,7 +455,8 @@ def _segment_distance(points, a, b):
 def insert_metacarpals(rig: Rig, truth: Truth, fraction: float = 0.2, flex_deg: float | None = 5.0,
                        prefix: str = "metacarpal_") -> tuple[Rig, Truth]:
     """Insert a joint between the palm joint and each non-thumb finger's knuckle, ``fraction``
-    of the way from the palm joint to the knuckle, its bone (Y) pointing at the knuckle and its
+    of the way from the palm's wrist end (``truth.palm_origin``, the palm joint's origin
+    unless a root palm was moved) to the knuckle, its bone (Y) pointing at the knuckle and its
     -Z to the knuckle's palmar side; the knuckle becomes its child with unchanged world frames.
     Each metacarpal gets one flex DOF of +-``flex_deg`` (None: no DOF). The palm's skin weight
     of vertices nearest each metacarpal bone (past its start) moves onto that metacarpal, so at
@@ -462,7 +471,7 @@ def insert_metacarpals(rig: Rig, truth: Truth, fraction: float = 0.2, flex_deg: 
         k = rig.joint_index(chain[0])
         if rig.joints[k].parent != palm:
             raise ValueError(f"{finger} does not hang off the palm joint")
-        start, end = bind[palm][:3, 3], bind[k][:3, 3]
+        start, end = truth.palm_origin, bind[k][:3, 3]
         y = _unit(end - start)
         p = truth.palmar[chain[0]]
         z = -_unit(p - (p @ y) * y)
@@ -569,6 +578,8 @@ def bake_pose(rig: Rig, truth: Truth, offsets: dict[str, float], step: str = "ba
     out = _new_rig(rig, joints, dofs, surface, visual, step=step)
     t = truth.copy()
     names = rig.joint_names
+    p = names.index(truth.palm)
+    t.palm_origin = (after[p] @ np.linalg.inv(before[p]) @ np.append(truth.palm_origin, 1.0))[:3]
     for i, name in enumerate(names):
         if name in t.palmar:
             t.palmar[name] = _unit(after[i][:3, :3] @ before[i][:3, :3].T @ truth.palmar[name])

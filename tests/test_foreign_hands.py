@@ -150,6 +150,9 @@ def test_move(hands, name):
     for k in truth.palmar:
         assert np.allclose(t.palmar[k], r @ truth.palmar[k])
     assert np.allclose(t.to_variant, MOVE)
+    assert np.allclose(t.palm_origin, p)
+    palm = out.kinematics().bind_world[out.joint_index(t.palm)][:3, 3]
+    assert np.allclose(palm, 0.0 if t.palm == out.joint_names[0] else p)  # a root palm stays at the origin
     with pytest.raises(ValueError):
         move(rig, truth, np.diag([-1.0, 1, 1, 1]))
 
@@ -235,6 +238,7 @@ def test_insert_metacarpals(hands, name):
         mi = out.joint_index(m)
         assert out.joints[mi].parent == palm
         start, knuckle = kin.bind_world[palm][:3, 3], kin.bind_world[out.joint_index(t.fingers[f][0])][:3, 3]
+        assert np.allclose(start, t.palm_origin)
         assert np.allclose(kin.bind_world[mi][:3, 3], start + 0.2 * (knuckle - start))
         assert np.allclose(kin.bind_world[mi][:3, 1], (knuckle - start) / np.linalg.norm(knuckle - start))
         assert (weights[:, mi] > 0.5).sum() > 10  # it owns palm skin
@@ -421,3 +425,24 @@ def test_builders_do_not_modify_their_input(hands):
     assert np.array_equal(before[2], rig.surface.vertices)
     assert all(np.array_equal(palmar[k], truth.palmar[k]) for k in palmar) and truth.steps == []
     assert truth_of(rig).fingers == truth.fingers
+
+
+def test_metacarpals_after_move_and_mirror(hands):
+    rig, truth = hands["prosthetic_2dof"]
+    base, bt = drop_fingers(rig, truth, ["pinky"])
+    moved, mt = mirror(*move(base, bt, MOVE))
+    out, t = insert_metacarpals(moved, mt, flex_deg=None)
+    _check_truth(out, t)
+    assert out.n_dofs == moved.n_dofs and len(t.metacarpals) == 3
+    q = _q(base, 16)
+    assert np.allclose(posed_vertices(out, variant_q(base, out, t, q)),
+                       posed_vertices(moved, variant_q(base, moved, mt, q)), atol=ATOL)
+    bind = out.kinematics().bind_world
+    for f, m in t.metacarpals.items():
+        i = out.joint_index(m)
+        assert np.allclose(t.palmar[m], -bind[i][:3, 2])
+        # the metacarpal sits on the moved, mirrored palm and its palmar side agrees with its knuckle's
+        knuckle = bind[out.joint_index(t.fingers[f][0])][:3, 3]
+        assert np.allclose(bind[i][:3, 3], t.palm_origin + 0.2 * (knuckle - t.palm_origin))
+        assert np.linalg.norm(t.palm_origin - MOVE[:3, 3] * [-1, 1, 1]) < 1e-12
+        assert t.palmar[m] @ t.palmar[t.fingers[f][0]] > 0.9
