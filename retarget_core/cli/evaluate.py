@@ -18,7 +18,8 @@ def add_commands(sub) -> None:
     grid = sub.add_parser("grid", help="every demo target x demo clip with our method and both baselines: "
                                        "table (md, csv) and HTML report; reruns reuse finished cells")
     grid.add_argument("--out", required=True, help="output folder")
-    grid.add_argument("--target", action="append", help="only this demo hand (repeatable)")
+    grid.add_argument("--target", action="append",
+                      help="only this target (repeatable): a demo hand, a rig file or installed:leap / installed:shadow")
     grid.add_argument("--clip", action="append", help="only this demo clip (repeatable)")
     grid.add_argument("--method", action="append", choices=["contacts", "fingertips", "keyvectors"],
                       help="only this method (repeatable)")

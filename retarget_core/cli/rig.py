@@ -14,6 +14,12 @@ def add_commands(sub) -> None:
     rig_demo.add_argument("--hand", action="append", help="only this demo hand (repeatable)")
     rig_demo.add_argument("--resolution", type=float, default=0.002, help="mesh cell size in metres")
     rig_demo.set_defaults(func=_cmd_rig_demo)
+    rig_hand = rig_sub.add_parser("hand", help="what the hand model reads from a rig: palm, fingers, thumb, "
+                                                "handedness, parts that are not the hand")
+    rig_hand.add_argument("path", help="a rig file or demo:NAME[@RESOLUTION]")
+    rig_hand.add_argument("--hand-map", default=None, help="hand mapping JSON that settles what detection cannot")
+    rig_hand.add_argument("--json", action="store_true", help="print JSON instead of text")
+    rig_hand.set_defaults(func=_cmd_rig_hand)
     rig_info = rig_sub.add_parser("info", help="describe a rig file (USD, URDF or MJCF)")
     rig_info.add_argument("path")
     rig_info.add_argument("--json", action="store_true", help="print JSON instead of text")
@@ -40,6 +46,34 @@ def _cmd_rig_demo(args) -> int:
     print(f"{'hand':<17} {'DOFs':>4} {'vertices':>9} {'faces':>7}  surface")
     for name, n_dofs, nv, nf, topo, path in rows:
         print(f"{name:<17} {n_dofs:>4} {nv:>9} {nf:>7}  {topo}  -> {path}")
+    return 0
+
+
+def _cmd_rig_hand(args) -> int:
+    from ..rig.hand_model import hand_model, load_hand_mapping
+    from ..rig.io import resolve_rig
+
+    rig = resolve_rig(args.path)
+    model = hand_model(rig, load_hand_mapping(args.hand_map) if args.hand_map else None)
+    name = rig.joints
+    if args.json:
+        summary = model.summary()
+        summary["palm_joint"] = name[model.palm_joint].name
+        summary["fingers"] = {f: [name[j].name for j in js] for f, js in summary["fingers"].items()}
+        summary["metacarpals"] = {f: [name[j].name for j in js] for f, js in summary["metacarpals"].items()}
+        summary["excluded_joints"] = [name[j].name for j in summary["excluded_joints"]]
+        print(json.dumps(summary, indent=2))
+        return 0
+    print(f"{rig.name}: {model.handedness} hand, palm joint {name[model.palm_joint].name!r}, "
+          f"palm {model.palm_length * 1000:.0f} mm long, {model.palm_width * 1000:.0f} mm across the knuckles")
+    for f in model.fingers:
+        meta = f" (metacarpals {', '.join(name[j].name for j in f.metacarpals)})" if f.metacarpals else ""
+        print(f"  {f.name:<7} {', '.join(name[j].name for j in f.joints)}{meta}: "
+              f"{f.length * 1000:.0f} mm, girth {f.girth * 1000:.1f} mm")
+    if model.excluded_joints:
+        print(f"  not the hand: {', '.join(name[j].name for j in model.excluded_joints)}")
+    for note in model.notes:
+        print(f"  note: {note}")
     return 0
 
 

@@ -45,6 +45,7 @@ def run_grid(out, *, targets=None, clips=None, methods=METHODS, frames: int = 12
     from ..pairing import pair_contacts
     from ..pipeline import retarget
     from ..rig.demo_hands import DEMO_HANDS, demo_hand
+    from ..rig.io import resolve_rig
     from ..solve.config import load_config
     from ..transfer.propose import propose_annotations
     from .report import write_evaluation
@@ -54,8 +55,9 @@ def run_grid(out, *, targets=None, clips=None, methods=METHODS, frames: int = 12
     clips = list(clips or DEMO_CLIPS)
     methods = list(methods or METHODS)
     for name in targets:
-        if name not in DEMO_HANDS:
-            raise InputError(f"unknown demo hand {name!r} (known: {', '.join(DEMO_HANDS)})", element="targets")
+        if name not in DEMO_HANDS and ":" not in name and not Path(name).is_file():
+            raise InputError(f"unknown demo hand {name!r} (known: {', '.join(DEMO_HANDS)}; or give a rig file "
+                             "or installed:NAME)", element="targets")
     for name in clips:
         if name not in DEMO_CLIPS:
             raise InputError(f"unknown demo clip {name!r} (known: {', '.join(DEMO_CLIPS)})", element="clips")
@@ -82,17 +84,18 @@ def run_grid(out, *, targets=None, clips=None, methods=METHODS, frames: int = 12
         target = None
         for clip_name in clips:
             for method in methods:
-                cell = out / "cells" / hand / clip_name / method
+                cell = out / "cells" / _cell_name(hand) / clip_name / method
                 if (cell / "metrics.json").is_file():
                     continue
                 if target is None:
-                    target = demo_hand(hand)
+                    target = demo_hand(hand) if hand in DEMO_HANDS else resolve_rig(hand, wrapper_resolution=0.004)
                     annotations = propose_annotations(source, target)
                 clip, clip_pairs = clip_window(clip_name)
                 t0 = time.perf_counter()
                 try:
                     inputs = RunInputs.of(clip, source, target, annotations, names={"clip": f"demo:{clip_name}[{frames}]",
-                                                 "source_rig": "demo:source_human", "target_rig": f"demo:{hand}"})
+                                                 "source_rig": "demo:source_human",
+                                                 "target_rig": f"demo:{hand}" if hand in DEMO_HANDS else hand})
                     result = retarget(inputs, load_config(None, "default", {"method": method}),
                                       Executor(workers=default_workers() if workers is None else workers), pairs=clip_pairs)
                     result.write(cell)
@@ -106,12 +109,19 @@ def run_grid(out, *, targets=None, clips=None, methods=METHODS, frames: int = 12
     return write_grid_tables(out, targets, clips, methods)
 
 
+def _cell_name(hand: str) -> str:
+    """A cell folder name for a target: a demo hand's name, else the rig spec made file-safe."""
+    import re
+
+    return re.sub(r"[^A-Za-z0-9_.@-]+", "_", Path(hand).stem if Path(hand).is_file() else hand)
+
+
 def _cells(out: Path, targets, clips, methods):
     rows = []
     for hand in targets:
         for clip_name in clips:
             for method in methods:
-                cell = out / "cells" / hand / clip_name / method
+                cell = out / "cells" / _cell_name(hand) / clip_name / method
                 summary, error = None, None
                 if (cell / "metrics.json").is_file():
                     summary = json.loads((cell / "metrics.json").read_text(encoding="utf-8"))["summary"]

@@ -15,6 +15,7 @@ from .hand_model import FINGER_NAMES, HandModel, hand_model
 from .model import Rig
 
 __all__ = ["FINGER_NAMES", "Finger", "hand_fingers", "palm_vertices", "source_markers", "closest_hand_points",
+           "marker_sites", "place_markers", "surface_along",
            "set_root_transform", "root_transform", "euler_xyz_from_matrix"]
 
 # ---- the free root as a rigid transform -------------------------------------------------------
@@ -84,51 +85,106 @@ def palm_vertices(rig: Rig, model: HandModel | None = None) -> np.ndarray:
     return ids[normals[ids] @ model.palmar > 0.7]
 
 
-def closest_hand_points(rig: Rig, model: HandModel, points: np.ndarray) -> SurfacePoints:
-    """The points of the hand's own surface (not a forearm or a mount) closest to points (N, 3)."""
+def closest_hand_points(rig: Rig, model: HandModel, points: np.ndarray, *, palm_only=False) -> SurfacePoints:
+    """The points of the hand's own surface (not a forearm or a mount; with ``palm_only``, of the
+    palm: not a finger curled over it or a thumb turned beside it) closest to points (N, 3)."""
     faces = model.hand_faces(rig.surface.faces)
+    if palm_only:
+        palm = np.zeros(rig.surface.n_vertices, dtype=bool)
+        palm[model.palm_vertices] = True
+        faces = faces[palm[rig.surface.faces[faces]].all(axis=1)]
     sp = closest_surface_points(rig.surface.vertices, rig.surface.faces[faces], points)
     return SurfacePoints(faces[sp.faces], sp.barycentric)
 
 
+def _region_faces(rig: Rig, model: HandModel, palm_only: bool) -> np.ndarray:
+    faces = model.hand_faces(rig.surface.faces)
+    if palm_only:
+        palm = np.zeros(rig.surface.n_vertices, dtype=bool)
+        palm[model.palm_vertices] = True
+        faces = faces[palm[rig.surface.faces[faces]].all(axis=1)]
+    return faces
+
+
+def surface_along(rig: Rig, model: HandModel, origins: np.ndarray, directions: np.ndarray, *,
+                  palm_only: bool = False, reach: float = 0.03) -> SurfacePoints:
+    """Where rays from ``origins`` (N, 3) along ``directions`` (N, 3) first meet the hand's surface
+    (the palm's with ``palm_only``): from inside, the surface point straight off a joint in a
+    given direction, whatever the hand's thickness and pose at rest; from outside, where the ray
+    enters. A ray that meets no such surface gives the closest point of
+    ``origin + reach * direction``."""
+    import trimesh
+
+    from ..mesh.surface_points import barycentric_of
+
+    origins = np.asarray(origins, float).reshape(-1, 3)
+    directions = np.asarray(directions, float).reshape(-1, 3)
+    directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    faces = _region_faces(rig, model, palm_only)
+    mesh = trimesh.Trimesh(rig.surface.vertices, rig.surface.faces[faces], process=False)
+    locations, rays, tri = mesh.ray.intersects_location(origins, directions, multiple_hits=False)
+    out_faces = np.full(len(origins), -1, dtype=np.int64)
+    out_bary = np.zeros((len(origins), 3))
+    if len(rays):
+        out_faces[rays] = faces[tri]
+        out_bary[rays] = barycentric_of(rig.surface.vertices[rig.surface.faces[faces[tri]]], locations)
+    missed = np.nonzero(out_faces < 0)[0]
+    if len(missed):
+        sp = closest_hand_points(rig, model, origins[missed] + reach * directions[missed], palm_only=palm_only)
+        out_faces[missed], out_bary[missed] = sp.faces, sp.barycentric
+    return SurfacePoints(out_faces, out_bary)
+
+
 # ---- source markers ---------------------------------------------------------------------------
-#: metres: how far off the bone (toward the back or the palm) marker and curve sites are sought
-#: before they are put on the surface; at least twice the finger's girth on thick fingers.
-MARKER_REACH = 0.03
-
-
-def marker_sites(rig: Rig, model: HandModel) -> dict[str, np.ndarray]:
-    """The paper's 25 marker names and their sites (3,) near the surface, at rest:
+def marker_sites(rig: Rig, model: HandModel) -> dict[str, tuple[np.ndarray, np.ndarray, bool]]:
+    """The paper's 25 marker names and where each lies, as a ray (origin (3,), direction (3,),
+    palm_only) whose exit from the surface is the marker (:func:`surface_along`), at rest:
     <Finger>Base/Middle/Tip on the back of the finger over its first, second and third
-    articulations, <Finger>Fingertip at the end of the finger, BackIndex/BackRing on the back of
-    the palm, WristLeft (thumb side) / WristRight at the sides of the wrist, PalmRoot on the palm
-    near the wrist. Fingers the hand lacks are skipped."""
-    targets: dict[str, np.ndarray] = {}
+    articulations, <Finger>Fingertip at the apex of the finger, BackIndex/BackRing on the back of
+    the palm halfway from the wrist to the index / ring knuckle, WristLeft (thumb side) /
+    WristRight at the sides of the wrist, PalmRoot on the palm 20 mm past the wrist. Fingers the
+    hand lacks are skipped."""
+    sites: dict[str, tuple[np.ndarray, np.ndarray, bool]] = {}
     for finger in model.fingers:
         title = finger.name.capitalize()
-        reach = max(MARKER_REACH, 2.0 * finger.girth)
         for label, k in (("Base", 0), ("Middle", 1), ("Tip", 2)):
             if k < len(finger.segments):
                 seg = finger.segments[k]
-                targets[f"{title}{label}"] = seg.start - seg.palmar * reach
-        targets[f"{title}Fingertip"] = finger.tip + finger.segments[-1].direction * 0.005
-    reach = max(MARKER_REACH, model.palm_thickness)
+                sites[f"{title}{label}"] = (seg.start, -seg.palmar, False)
+        last = finger.segments[-1]
+        sites[f"{title}Fingertip"] = (last.start, finger.tip - last.start, False)
     for label, name in (("BackIndex", "index"), ("BackRing", "ring")):
         finger = model.finger(name)
         if finger is not None:
-            targets[label] = 0.5 * (model.wrist + finger.knuckle) - model.palmar * reach
-    side = max(0.06, 0.75 * model.palm_width)
-    targets["WristLeft"] = model.wrist + model.lateral * side + model.forward * 0.005
-    targets["WristRight"] = model.wrist - model.lateral * side + model.forward * 0.005
-    targets["PalmRoot"] = model.wrist + model.forward * 0.02 + model.palmar * reach
-    return targets
+            sites[label] = (0.5 * (model.wrist + finger.knuckle), -model.palmar, True)
+    # The sides of the wrist are reached from outside: a ray from the wrist outwards would leave
+    # through the rounded end of the palm (or the forearm) and miss the palm's side.
+    near_wrist = model.wrist + model.forward * 0.01
+    across = (rig.surface.vertices[model.palm_vertices] - model.wrist) @ model.lateral
+    for label, side, extent in (("WristLeft", 1.0, across.max()), ("WristRight", -1.0, -across.min())):
+        sites[label] = (near_wrist + side * model.lateral * (extent + 0.03), -side * model.lateral, True)
+    sites["PalmRoot"] = (model.wrist + model.forward * 0.02, model.palmar, True)
+    return sites
+
+
+def place_markers(rig: Rig, model: HandModel, sites: dict, names: list[str]) -> SurfacePoints:
+    """The named marker sites of :func:`marker_sites` put on the surface."""
+    faces = np.zeros(len(names), dtype=np.int64)
+    bary = np.zeros((len(names), 3))
+    for palm_only in (False, True):
+        idx = [i for i, n in enumerate(names) if sites[n][2] == palm_only]
+        if idx:
+            sp = surface_along(rig, model, np.array([sites[names[i]][0] for i in idx]),
+                               np.array([sites[names[i]][1] for i in idx]), palm_only=palm_only)
+            faces[idx], bary[idx] = sp.faces, sp.barycentric
+    return SurfacePoints(faces, bary)
 
 
 def source_markers(rig: Rig, model: HandModel | None = None) -> tuple[list[str], np.ndarray, np.ndarray]:
-    """The marker sites of :func:`marker_sites` put on the hand's surface.
+    """The markers of :func:`marker_sites` on the hand's surface.
     Returns (names, faces (M,), barycentric (M, 3))."""
     model = model or hand_model(rig)
-    targets = marker_sites(rig, model)
-    names = list(targets)
-    points = closest_hand_points(rig, model, np.array([targets[n] for n in names]))
+    sites = marker_sites(rig, model)
+    names = list(sites)
+    points = place_markers(rig, model, sites, names)
     return names, points.faces, points.barycentric

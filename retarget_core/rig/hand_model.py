@@ -458,7 +458,7 @@ def hand_model(rig: Rig, mapping: HandMapping | None = None) -> HandModel:
     # 4. Palm frame, metacarpals, palm frame again from the knuckles.
     others = [i for i in range(len(chain_list)) if i != thumb]
     starts = {i: 0 for i in range(len(chain_list))}
-    frame = _palm_axes(rig, chain_list, starts, thumb, palm_pos, palm_joints, owner, vertices)
+    frame = _palm_axes(rig, chain_list, starts, thumb, palm_pos, palm_joints, owner, vertices, first_pass=True)
     if not mapping.fingers and len(others) >= 2:
         mesh = _ray_mesh(rig)
         webs = [_web_position(chain_list, i, [k for k in others if k != i], mesh, frame[0]) for i in others]
@@ -466,7 +466,8 @@ def hand_model(rig: Rig, mapping: HandMapping | None = None) -> HandModel:
         # One web line for the whole palm (the median), so one finger fused to its neighbour in
         # the surface does not move its own knuckle.
         web = float(np.median(found)) if found else -np.inf
-        notes.append(f"web line {web:.4f} m along forward (from {len(found)} of {len(others)} fingers)"
+        notes.append(f"the fingers separate {1000 * (web - palm_pos @ frame[0]):.0f} mm past the palm joint "
+                     f"(median of {len(found)} of {len(others)} fingers)"
                      if found else "no web found between the fingers: no metacarpals stripped")
         starts.update(_metacarpal_counts(rig, chain_list, others, web, frame[0], frame[2], world, notes))
         for i in others:
@@ -513,7 +514,7 @@ def hand_model(rig: Rig, mapping: HandMapping | None = None) -> HandModel:
     knuckle_mean = np.mean([chain_list[i].points[starts[i]] for i in others], axis=0) if others else wrist
     fingers = []
     for i, c in enumerate(chain_list):
-        finger = _finger_model(names[i], c, starts[i], palmar, forward, knuckle_mean, owner, vertices)
+        finger = _finger_model(rig, world, names[i], c, starts[i], palmar, forward, knuckle_mean, owner, vertices)
         finger.flex_dofs = [_dof_about(rig, world, j, finger.segment_of(j).flexion_axis) for j in finger.joints]
         finger.abduction_dofs = [_dof_about(rig, world, j, finger.segment_of(j).abduction_axis) for j in finger.joints]
         fingers.append(finger)
@@ -567,7 +568,7 @@ def _find_thumb(rig: Rig, chains: list[_Chain], palm_pos: np.ndarray, notes: lis
     raise _ambiguous(rig, f"which finger chain is the thumb: no chain points clearly away from the others ({listed})")
 
 
-def _palm_axes(rig, chains, starts, thumb, palm_pos, palm_joints, owner, vertices):
+def _palm_axes(rig, chains, starts, thumb, palm_pos, palm_joints, owner, vertices, *, first_pass=False):
     """(forward, lateral toward the thumb, normal (sign undecided), palm centroid, palm vertex ids).
 
     The palm is the surface owned by the palm joints and the metacarpals (leading chain joints
@@ -591,11 +592,13 @@ def _palm_axes(rig, chains, starts, thumb, palm_pos, palm_joints, owner, vertice
     # Lateral: across the knuckles; then the normal (the slab's thinnest axis when the palm is
     # clearly flat, else from the wrist-to-knuckles direction), then forward completes the frame.
     if len(others) >= 2:
-        # The knuckles' spread across the fingers' mean direction (a knuckle set back along the
-        # fingers, such as a robot's palm-cupping joint, must not turn the line).
-        along = _unit(np.mean([chains[i].tip - chains[i].points[starts[i]] for i in others], axis=0))
         spread = knuckles - knuckle_mean
-        spread -= np.outer(spread @ along, along)
+        if first_pass:
+            # Before the metacarpals are known, a chain's first joint may be set back along the
+            # fingers (a robot's palm-cupping joint): take the spread across the fingers' mean
+            # direction. After, the knuckles' own line (which a curl at rest does not change).
+            along = _unit(np.mean([chains[i].tip - chains[i].points[starts[i]] for i in others], axis=0))
+            spread -= np.outer(spread @ along, along)
         lateral = _unit(np.linalg.svd(spread, full_matrices=False)[2][0])
     else:
         lateral = _perp(chains[thumb].points[0] - knuckle_mean, forward)
@@ -674,14 +677,16 @@ KNUCKLE_MIN_FLEXION = np.radians(20.0)
 def _metacarpal_counts(rig, chains, others, web, forward, normal, world, notes) -> dict[int, int]:
     """Per non-thumb chain, how many leading articulations lie inside the palm (metacarpals).
 
-    First, articulations whose bone ends before the web and that cannot flex the finger (no DOF,
+    First, articulations whose bone ends before the web (within a quarter of its length) and that cannot flex the finger (no DOF,
     or only abduction; with no DOFs on the chain, the web alone decides). Then, against the
     knuckle line of all fingers (their median), an articulation whose bone ends at that line is a
     metacarpal even when it moves (a robot's palm-cupping joint). Two articulations always stay."""
     counts = {}
     for i in others:
         c, k = chains[i], 0
-        while k < len(c.points) - 2 and c.points[k + 1] @ forward <= web:
+        # a bone "ends before the web" within a quarter of its own length (knuckles sit at the web)
+        while k < len(c.points) - 2 and \
+                c.points[k + 1] @ forward <= web + 0.25 * np.linalg.norm(c.points[k + 1] - c.points[k]):
             capacity = _flexion_capacity(rig, c, k, world, normal)
             if capacity is not None and capacity >= KNUCKLE_MIN_FLEXION:
                 break
@@ -760,12 +765,33 @@ def _name_fingers(rig, chains, order, notes) -> dict[int, str]:
     return {i: name for i, name in zip(order, names)}
 
 
-def _finger_model(name, chain: _Chain, start, palmar, forward, knuckle_mean, owner, vertices) -> FingerModel:
+def _bending_direction(rig: Rig, world: np.ndarray, group: list[int], direction: np.ndarray) -> np.ndarray | None:
+    """Where the articulation's main bending DOF curls the bone: the rotational DOF across the
+    bone with the widest range, toward its larger side; None when the joints carry no such DOF or
+    its range is about symmetric (the rig does not say which side flexes)."""
+    best, best_range = None, 0.0
+    for d in rig.dofs:
+        if d.joint in group and d.kind == "rotate":
+            a = world[d.joint][:3, :3] @ d.axis
+            if abs(a @ direction) > 0.5:
+                continue  # a twist about the bone
+            plus, minus = min(d.upper - d.rest, np.pi), min(d.rest - d.lower, np.pi)
+            if plus + minus > best_range:
+                best_range = plus + minus
+                best = _unit(np.cross(a, direction)) * (1.0 if plus >= minus else -1.0), abs(plus - minus)
+    if best is None or best[1] < np.radians(20.0):
+        return None
+    return _perp(best[0], direction)
+
+
+def _finger_model(rig, world, name, chain: _Chain, start, palmar, forward, knuckle_mean, owner, vertices) -> FingerModel:
     groups = chain.groups[start:]
     polyline = chain.polyline[start:]
     directions = [_unit(b - a) for a, b in zip(polyline[:-1], polyline[1:])]
     if name == "thumb":
-        # The thumb's pad faces halfway between the palm and the fingers (opposition).
+        # The thumb's pad faces halfway between the palm and the fingers (opposition); a round
+        # thumb turned about its own axis looks the same, so where its joints bend (a flexion
+        # range much larger on one side) says it better when the rig has DOFs.
         pad = _perp(palmar, directions[0]) + _perp(knuckle_mean - polyline[0], directions[0])
         palmar_k = _perp(pad, directions[0])
     else:
@@ -775,6 +801,19 @@ def _finger_model(name, chain: _Chain, start, palmar, forward, knuckle_mean, own
     for k, group in enumerate(groups):
         if k > 0:
             palmar_k = _transport(palmar_k, directions[k - 1], directions[k])
+        if name == "thumb":
+            # A link's pad turns with the link, and the next joint bends in the link's own frame,
+            # so the next articulation's bending (carried back onto this bone) gives this link's
+            # pad; the last link has only its own joint's.
+            bending = None
+            if k + 1 < len(groups):
+                after = _bending_direction(rig, world, groups[k + 1], directions[k + 1])
+                if after is not None:
+                    bending = _transport(after, directions[k + 1], directions[k])
+            if bending is None:
+                bending = _bending_direction(rig, world, group, directions[k])
+            if bending is not None and bending @ palmar_k > 0.0:
+                palmar_k = bending
         flex_axis = _unit(np.cross(directions[k], palmar_k))
         if previous is None:
             bend = 0.0
@@ -787,7 +826,17 @@ def _finger_model(name, chain: _Chain, start, palmar, forward, knuckle_mean, own
     joints = [j for g in groups for j in g]
     link_vertices = [np.nonzero(owner == j)[0] for j in joints]
     owned = np.concatenate(link_vertices) if link_vertices else np.zeros(0, dtype=np.int64)
-    girth = float(np.median(_distance_to_polyline(vertices[owned], polyline))) if len(owned) else 0.0
+    # each link's surface against its own bone, so a finger curled at rest measures as straight
+    # (its middle part: skinning bulges the surface near a bent joint)
+    distances = []
+    for k, g in enumerate(groups):
+        ids = np.nonzero(np.isin(owner, g))[0]
+        a, b = polyline[k], polyline[k + 1]
+        t = (vertices[ids] - a) @ (b - a) / max((b - a) @ (b - a), 1e-18)
+        middle = ids[(t >= 0.2) & (t <= 0.8)]
+        if len(middle):
+            distances.append(_distance_to_polyline(vertices[middle], polyline[k:k + 2]))
+    girth = float(np.median(np.concatenate(distances))) if distances else 0.0
     length = float(np.linalg.norm(np.diff(polyline, axis=0), axis=1).sum())
     metacarpals = [j for g in chain.groups[:start] for j in g]
     return FingerModel(name, joints, metacarpals, segments, chain.tip.copy(), chain.tip_vertex, link_vertices,

@@ -87,11 +87,45 @@ def demo_resolution(res: str, spec: str = "") -> float:
     return resolution
 
 
+#: Robot hand models shipped by wheels installed at set-up (Makefile ROBOT_MODEL_WHEELS):
+#: ``installed:NAME`` -> (package, path inside it). Only their files are used.
+INSTALLED_MODELS = {
+    "leap": ("ghand", "assets/models/urdf/ghand_right.urdf"),
+    "shadow": ("gymnasium_robotics", "envs/assets/hand/reach.xml"),
+}
+
+
+def installed_model(name: str) -> Path:
+    """The file of an installed robot hand model (see :data:`INSTALLED_MODELS`)."""
+    import importlib.util
+
+    if name not in INSTALLED_MODELS:
+        raise InputError(f"unknown installed model {name!r}; known: {', '.join(INSTALLED_MODELS)}", element="rig")
+    package, inner = INSTALLED_MODELS[name]
+    try:
+        spec = importlib.util.find_spec(package)
+    except (ImportError, ValueError):
+        spec = None
+    locations = list(spec.submodule_search_locations or []) if spec is not None else []
+    path = Path(locations[0]) / inner if locations else None
+    if path is None or not path.is_file():
+        raise InputError(f"the {name} model is not installed (its wheel {package!r} is installed by `make setup`)",
+                         element="rig")
+    return path
+
+
 def resolve_rig(spec: str, **load_options) -> Rig:
-    """A rig from a file path, or a demo hand as ``demo:NAME`` or ``demo:NAME@RESOLUTION``
+    """A rig from a file path, a demo hand as ``demo:NAME`` or ``demo:NAME@RESOLUTION``
     (metres, within :data:`DEMO_RESOLUTION_RANGE`; the clip format records its source rig this
-    way, e.g. "demo:source_human@0.004")."""
+    way, e.g. "demo:source_human@0.004"), or an installed robot hand model as
+    ``installed:NAME[@WRAPPER_RESOLUTION]`` (:data:`INSTALLED_MODELS`)."""
     spec = str(spec)
+    if spec.startswith("installed:"):
+        name, _, res = spec[len("installed:"):].partition("@")
+        options = dict(load_options)
+        if res:
+            options["wrapper_resolution"] = demo_resolution(res, spec)
+        return load_rig(installed_model(name), **options)
     if spec.startswith("demo:"):
         from .demo_hands import DEMO_HANDS, demo_hand
 

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
-from ..rig.anatomy import closest_hand_points, marker_sites
+from ..rig.anatomy import closest_hand_points, marker_sites, place_markers, surface_along
 from ..rig.hand_model import HandMapping, HandModel, hand_model
 from ..rig.model import Rig
 from .annotations import (
@@ -61,22 +61,38 @@ class Proposal:
         return out
 
 
-def _point(rig: Rig, model: HandModel, xyz) -> PointRef:
-    sp = closest_hand_points(rig, model, np.asarray(xyz, float)[None])
+def _point(rig: Rig, model: HandModel, xyz, *, palm_only=False) -> PointRef:
+    sp = closest_hand_points(rig, model, np.asarray(xyz, float)[None], palm_only=palm_only)
     return PointRef(face=int(sp.faces[0]), barycentric=tuple(float(x) for x in sp.barycentric[0]))
 
 
-def _palm_sites(model: HandModel):
-    """(root, central knuckle, first knuckle, outermost knuckle) sites on the palmar side."""
-    off = max(PALMAR_OFFSET, model.palm_thickness)
+def _surface_along(rig: Rig, model: HandModel, origin, direction, *, palm_only=False) -> PointRef:
+    sp = surface_along(rig, model, np.asarray(origin, float)[None], np.asarray(direction, float)[None],
+                       palm_only=palm_only, reach=PALMAR_OFFSET)
+    return PointRef(face=int(sp.faces[0]), barycentric=tuple(float(x) for x in sp.barycentric[0]))
+
+
+def _curve_start(rig: Rig, model: HandModel, finger) -> PointRef:
+    """Where a finger's curve starts: on the surface straight palmar of its knuckle."""
+    return _surface_along(rig, model, finger.knuckle, finger.segments[0].palmar)
+
+
+def _palm_sites(rig: Rig, model: HandModel) -> list[PointRef]:
+    """(root, central knuckle, first knuckle, outermost knuckle): on the palm straight palmar of
+    a point 15 mm past the wrist and of points just behind the knuckles."""
     fingers = [f for f in model.fingers if not f.is_thumb]
     if not fingers:
         raise InputError("cannot propose palm curves: the hand has no finger besides the thumb",
                          source=model.rig_name)
     central = model.finger("middle") or fingers[len(fingers) // 2]
-    root = model.wrist + model.forward * 0.015 + model.palmar * off
-    return (root, central.knuckle + model.palmar * off, fingers[0].knuckle + model.palmar * off,
-            fingers[-1].knuckle + model.palmar * off)
+    # from points just behind the knuckles, so the rays leave through the palm, not a finger's base
+    back = [f.knuckle + 0.15 * (model.wrist - f.knuckle) for f in (central, fingers[0], fingers[-1])]
+    origins = (model.wrist + model.forward * 0.015, *back)
+    return [_surface_along(rig, model, o, model.palmar, palm_only=True) for o in origins]
+
+
+def _position(rig: Rig, point: PointRef) -> np.ndarray:
+    return np.asarray(point.barycentric) @ rig.surface.vertices[rig.surface.faces[point.face]]
 
 
 def propose(source: Rig, target: Rig, *, area_radius: float = 0.004, spacing: float = 0.002,
@@ -86,11 +102,10 @@ def propose(source: Rig, target: Rig, *, area_radius: float = 0.004, spacing: fl
     sm, tm = hand_model(source, source_mapping), hand_model(target, target_mapping)
     curves, discarded = [], []
     for s in sm.fingers:
-        s_start = s.knuckle + s.segments[0].palmar * max(PALMAR_OFFSET, 2 * s.girth)
         t = tm.finger(s.name)
         if t is not None:
             curve_target = CurveTarget(
-                start=_point(target, tm, t.knuckle + t.segments[0].palmar * max(PALMAR_OFFSET, 2 * t.girth)),
+                start=_curve_start(target, tm, t),
                 direction=_point(target, tm, t.tip),
                 lambda_a=round(t.length / s.length, 3),
                 lambda_s=LambdaS.constant(round(t.girth / s.girth, 3)),
@@ -99,30 +114,30 @@ def propose(source: Rig, target: Rig, *, area_radius: float = 0.004, spacing: fl
             curve_target = None
             discarded.append(s.name)
         # the end is the apex of the fingertip: charts then cover the pad, the tip and the nail
-        curves.append(AxialCurveAnnotation(name=s.name, source_start=_point(source, sm, s_start),
+        curves.append(AxialCurveAnnotation(name=s.name, source_start=_curve_start(source, sm, s),
                                            source_end=_point(source, sm, s.tip), source_points=None,
                                            target=curve_target))
     extra = [f.name for f in tm.fingers if sm.finger(f.name) is None]
 
-    s_root, s_mid, s_first, s_last = _palm_sites(sm)
-    t_root, t_mid, t_first, t_last = _palm_sites(tm)
+    s_sites, t_sites = _palm_sites(source, sm), _palm_sites(target, tm)
+    s_root, s_mid, s_first, s_last = (_position(source, p) for p in s_sites)
+    t_root, t_mid, t_first, t_last = (_position(target, p) for p in t_sites)
     ratio_long = np.linalg.norm(t_mid - t_root) / np.linalg.norm(s_mid - s_root)
     ratio_cross = np.linalg.norm(t_last - t_first) / max(np.linalg.norm(s_last - s_first), 1e-9)
     curves.append(AxialCurveAnnotation(
-        name="palm", source_start=_point(source, sm, s_root), source_end=_point(source, sm, s_mid), source_points=None,
-        target=CurveTarget(start=_point(target, tm, t_root), direction=_point(target, tm, t_mid),
-                           lambda_a=round(float(ratio_long), 3), lambda_s=LambdaS.constant(round(float(ratio_cross), 3)))))
+        name="palm", source_start=s_sites[0], source_end=s_sites[1], source_points=None,
+        target=CurveTarget(start=t_sites[0], direction=t_sites[1], lambda_a=round(float(ratio_long), 3),
+                           lambda_s=LambdaS.constant(round(float(ratio_cross), 3)))))
     curves.append(AxialCurveAnnotation(
-        name="knuckles", source_start=_point(source, sm, s_first), source_end=_point(source, sm, s_last),
-        source_points=None,
-        target=CurveTarget(start=_point(target, tm, t_first), direction=_point(target, tm, t_last),
-                           lambda_a=round(float(ratio_cross), 3), lambda_s=LambdaS.constant(round(float(ratio_long), 3)))))
+        name="knuckles", source_start=s_sites[2], source_end=s_sites[3], source_points=None,
+        target=CurveTarget(start=t_sites[2], direction=t_sites[3], lambda_a=round(float(ratio_cross), 3),
+                           lambda_s=LambdaS.constant(round(float(ratio_long), 3)))))
 
     # Markers by name: a point on the source, an area on the target.
     s_sites, t_sites = marker_sites(source, sm), marker_sites(target, tm)
     names = [n for n in s_sites if n in t_sites]
-    s_points = closest_hand_points(source, sm, np.array([s_sites[n] for n in names]))
-    t_points = closest_hand_points(target, tm, np.array([t_sites[n] for n in names]))
+    s_points = place_markers(source, sm, s_sites, names)
+    t_points = place_markers(target, tm, t_sites, names)
     t_centres = t_points.positions(target.surface.vertices, target.surface.faces)
     hand_ids = np.nonzero(tm.hand_vertices)[0]
     markers = []
