@@ -138,7 +138,8 @@ def surface_along(rig: Rig, model: HandModel, origins: np.ndarray, directions: n
 # ---- source markers ---------------------------------------------------------------------------
 def marker_sites(rig: Rig, model: HandModel) -> dict[str, tuple[np.ndarray, np.ndarray, bool]]:
     """The paper's 25 marker names and where each lies, as a ray (origin (3,), direction (3,),
-    palm_only) whose exit from the surface is the marker (:func:`surface_along`), at rest:
+    palm_only) whose exit from the surface is the marker (:func:`surface_along`), or a site
+    (point (3,), None, palm_only) whose closest surface point is, at rest:
     <Finger>Base/Middle/Tip on the back of the finger over its first, second and third
     articulations, <Finger>Fingertip at the apex of the finger, BackIndex/BackRing on the back of
     the palm halfway from the wrist to the index / ring knuckle, WristLeft (thumb side) /
@@ -157,12 +158,13 @@ def marker_sites(rig: Rig, model: HandModel) -> dict[str, tuple[np.ndarray, np.n
         finger = model.finger(name)
         if finger is not None:
             sites[label] = (0.5 * (model.wrist + finger.knuckle), -model.palmar, True)
-    # The sides of the wrist are reached from outside: a ray from the wrist outwards would leave
-    # through the rounded end of the palm (or the forearm) and miss the palm's side.
+    # The sides of the wrist: the palm's closest point to a site 3 cm outside each side (a ray
+    # from the wrist would leave through the rounded end of the palm or the forearm, and a ray
+    # from outside may meet a thumb base that covers the palm's side).
     near_wrist = model.wrist + model.forward * 0.01
     across = (rig.surface.vertices[model.palm_vertices] - model.wrist) @ model.lateral
     for label, side, extent in (("WristLeft", 1.0, across.max()), ("WristRight", -1.0, -across.min())):
-        sites[label] = (near_wrist + side * model.lateral * (extent + 0.03), -side * model.lateral, True)
+        sites[label] = (near_wrist + side * model.lateral * (extent + 0.03), None, True)
     sites["PalmRoot"] = (model.wrist + model.forward * 0.02, model.palmar, True)
     return sites
 
@@ -172,10 +174,14 @@ def place_markers(rig: Rig, model: HandModel, sites: dict, names: list[str]) -> 
     faces = np.zeros(len(names), dtype=np.int64)
     bary = np.zeros((len(names), 3))
     for palm_only in (False, True):
-        idx = [i for i, n in enumerate(names) if sites[n][2] == palm_only]
+        idx = [i for i, n in enumerate(names) if sites[n][2] == palm_only and sites[n][1] is not None]
         if idx:
             sp = surface_along(rig, model, np.array([sites[names[i]][0] for i in idx]),
                                np.array([sites[names[i]][1] for i in idx]), palm_only=palm_only)
+            faces[idx], bary[idx] = sp.faces, sp.barycentric
+        idx = [i for i, n in enumerate(names) if sites[n][2] == palm_only and sites[n][1] is None]
+        if idx:
+            sp = closest_hand_points(rig, model, np.array([sites[names[i]][0] for i in idx]), palm_only=palm_only)
             faces[idx], bary[idx] = sp.faces, sp.barycentric
     return SurfacePoints(faces, bary)
 

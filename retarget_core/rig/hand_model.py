@@ -326,7 +326,7 @@ class _Chain:
         return float(np.linalg.norm(np.diff(self.polyline, axis=0), axis=1).sum())
 
 
-def _chain_geometry(joints: list[int], positions, owner, vertices, scale) -> _Chain | None:
+def _chain_geometry(joints: list[int], positions, owner, vertices, scale, mesh) -> _Chain | None:
     groups: list[list[int]] = []
     for j in joints:
         if groups and np.linalg.norm(positions[j] - positions[groups[-1][0]]) <= COINCIDENT_FRACTION * scale:
@@ -338,13 +338,24 @@ def _chain_geometry(joints: list[int], positions, owner, vertices, scale) -> _Ch
     last = np.nonzero(np.isin(owner, groups[-1]))[0]
     if len(owned) == 0 or len(last) == 0:
         return None
-    # The tip: the owned vertex of the last link furthest along that link (its vertices' mean
-    # direction from the last articulation, so a curled or re-rolled finger is read the same).
+    # The tip: where the last link's axis (from its articulation toward its surface's centre, so
+    # a curled or re-rolled finger reads the same) leaves the surface: the centre of a flat robot
+    # fingertip, the apex of a round one.
     along = _unit(vertices[last].mean(axis=0) - points[-1])
     if not np.any(along) and len(points) > 1:
         along = _unit(points[-1] - points[-2])
-    tip_vertex = int(last[np.argmax((vertices[last] - points[-1]) @ along)])
-    return _Chain(joints, groups, points, vertices[tip_vertex].copy(), tip_vertex, owned)
+    reach = float(np.max((vertices[last] - points[-1]) @ along))
+    tip = None
+    if reach > 0:
+        hits, _, _ = mesh.ray.intersects_location(points[-1][None], along[None], multiple_hits=True)
+        t = (hits - points[-1]) @ along if len(hits) else np.zeros(0)
+        ok = (t >= 0.5 * reach) & (t <= 1.05 * reach + 1e-6)
+        if ok.any():
+            tip = hits[ok][np.argmax(t[ok])]
+    if tip is None:
+        tip = vertices[last[np.argmax((vertices[last] - points[-1]) @ along)]]
+    tip_vertex = int(last[np.argmin(np.linalg.norm(vertices[last] - tip, axis=1))])
+    return _Chain(joints, groups, points, np.array(tip, dtype=np.float64), tip_vertex, owned)
 
 
 def hand_model(rig: Rig, mapping: HandMapping | None = None) -> HandModel:
@@ -368,6 +379,8 @@ def hand_model(rig: Rig, mapping: HandMapping | None = None) -> HandModel:
     for j in range(n - 1, 0, -1):  # parents come first
         subtree[parents[j]] += subtree[j]
 
+    mesh = _ray_mesh(rig)
+
     def ancestors(j):
         out = []
         while j >= 0:
@@ -386,7 +399,7 @@ def hand_model(rig: Rig, mapping: HandMapping | None = None) -> HandModel:
         named = {f: [by_name(j, f"joint of {f}") for j in js] for f, js in mapping.fingers.items()}
         chains = {}
         for f, js in named.items():
-            chain = _chain_geometry(js, positions, owner, vertices, scale)
+            chain = _chain_geometry(js, positions, owner, vertices, scale, mesh)
             if chain is None:
                 raise InputError(f"finger {f!r} of the hand mapping owns no surface", source=rig.name,
                                  element="hand mapping")
@@ -404,7 +417,7 @@ def hand_model(rig: Rig, mapping: HandMapping | None = None) -> HandModel:
             # A chain that climbs to the top of the tree is the whole body, not a finger.
             if parents[path[0]] < 0:
                 continue
-            chain = _chain_geometry(path, positions, owner, vertices, scale)
+            chain = _chain_geometry(path, positions, owner, vertices, scale, mesh)
             if chain is not None and len(chain.groups) >= 2:
                 chain_list.append(chain)
         if chain_list:
@@ -460,7 +473,6 @@ def hand_model(rig: Rig, mapping: HandMapping | None = None) -> HandModel:
     starts = {i: 0 for i in range(len(chain_list))}
     frame = _palm_axes(rig, chain_list, starts, thumb, palm_pos, palm_joints, owner, vertices, first_pass=True)
     if not mapping.fingers and len(others) >= 2:
-        mesh = _ray_mesh(rig)
         webs = [_web_position(chain_list, i, [k for k in others if k != i], mesh, frame[0]) for i in others]
         found = [w for w in webs if w is not None]
         # One web line for the whole palm (the median), so one finger fused to its neighbour in
