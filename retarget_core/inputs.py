@@ -20,7 +20,7 @@ import numpy as np
 from .clip.format import Clip, load_clip
 from .errors import InputError
 from .rig.model import Rig
-from .transfer.annotations import Annotations, load_annotations
+from .transfer.annotations import DEFAULT_MAX_DISPLACEMENT, Annotations, load_annotations
 
 #: The demo hand the demonstration clips are made with, when a clip names no source rig.
 DEFAULT_SOURCE_RIG = "demo:source_human@0.004"
@@ -111,7 +111,10 @@ def frame_range(frames, n_frames: int) -> tuple[int, int]:
 @dataclass
 class RunInputs:
     """What one run reads. ``frames``: [start, end) of ``clip`` to retarget (None = all).
-    ``sources``: {input name: {"sha256", and "path" or "spec" when read from one}}."""
+    ``sources``: {input name: {"sha256", and "path" or "spec" when read from one}}.
+    ``annotation_max_displacement``: how far (metres) an annotated point may move when the
+    annotations are carried onto an edited rig mesh
+    (:func:`~retarget_core.transfer.annotations.remap_to_meshes`)."""
 
     clip: Clip
     source_rig: Rig
@@ -119,10 +122,12 @@ class RunInputs:
     annotations: Annotations
     frames: tuple | None = None
     sources: dict = field(default_factory=dict)
+    annotation_max_displacement: float = DEFAULT_MAX_DISPLACEMENT
 
     @classmethod
     def of(cls, clip: Clip, source_rig: Rig, target_rig: Rig, annotations: Annotations, frames=None, *,
-           names: dict | None = None) -> "RunInputs":
+           names: dict | None = None,
+           annotation_max_displacement: float = DEFAULT_MAX_DISPLACEMENT) -> "RunInputs":
         """Inputs already in memory; their sha256 is taken from their content. ``names``:
         optional {input name: where it came from} (e.g. ``{"target_rig": "demo:witch@0.003"}``)."""
         sources = names or {}
@@ -132,7 +137,7 @@ class RunInputs:
             described[name] = {"sha256": content_sha256(obj)}
             if name in sources:
                 described[name]["spec"] = str(sources[name])
-        return cls(clip, source_rig, target_rig, annotations, frames, described)
+        return cls(clip, source_rig, target_rig, annotations, frames, described, annotation_max_displacement)
 
     def provenance(self) -> dict:
         return {name: dict(v) for name, v in self.sources.items()}
@@ -176,10 +181,14 @@ def clip_source_rig(clip: Clip) -> str:
     return spec
 
 
-def load_inputs(clip, rig, annotations, *, source_rig=None, frames=None, **rig_options) -> RunInputs:
+def load_inputs(clip, rig, annotations, *, source_rig=None, frames=None,
+                annotation_max_displacement: float = DEFAULT_MAX_DISPLACEMENT, **rig_options) -> RunInputs:
     """Read a run's inputs: ``clip`` and ``annotations`` file paths, ``rig`` and ``source_rig``
     file paths or ``demo:NAME[@RES]`` (``source_rig`` None: the demo hand the clip names, see
-    :func:`clip_source_rig`), ``frames`` (start, end), ``"START:END"`` or None."""
+    :func:`clip_source_rig`), ``frames`` (start, end), ``"START:END"`` or None.
+    Annotations made for an earlier version of a rig's mesh are carried onto the current one by
+    the run (points within ``annotation_max_displacement`` metres, see :class:`RunInputs`); a
+    mismatch they cannot survive is reported here, before any work."""
     loaded = load_clip(clip)
     sources = {"clip": {"path": str(Path(clip).resolve()), "sha256": file_sha256(clip)}}
     source, sources["source_rig"] = resolve_rig_source(source_rig or clip_source_rig(loaded), **rig_options)
@@ -187,4 +196,9 @@ def load_inputs(clip, rig, annotations, *, source_rig=None, frames=None, **rig_o
     ann = load_annotations(annotations)
     sources["annotations"] = {"path": str(Path(annotations).resolve()), "sha256": file_sha256(annotations)}
     frame_range(frames, loaded.n_frames)  # a bad range is reported before any work
-    return RunInputs(loaded, source, target, ann, frames, sources)
+    from .transfer.annotations import remap_to_meshes
+
+    # a mesh the annotations cannot be carried onto is reported before any work (the run
+    # remaps again, from the annotations as read, and records the report)
+    remap_to_meshes(ann, source, target, max_displacement=annotation_max_displacement, source=str(annotations))
+    return RunInputs(loaded, source, target, ann, frames, sources, annotation_max_displacement)

@@ -13,6 +13,7 @@ same DOF values.
 
 from __future__ import annotations
 
+import logging
 import subprocess
 import time
 from pathlib import Path
@@ -36,7 +37,10 @@ from .rig.model import Rig
 from .solve.config import MIN_CONTROL_POINTS, RetargetConfig
 from .solve.problem import Problem, method_objective, unused_settings
 from .solve.targets import contact_targets, marker_targets, scale_finger_markers
+from .transfer.annotations import DEFAULT_MAX_DISPLACEMENT, remap_to_meshes
 from .transfer.clip_transfer import transfer_clip
+
+logger = logging.getLogger(__name__)
 
 #: The root-only pass is seeded sequentially within runs of this many frames (half a second at
 #: 120 fps), each run started from a rigid fit of the markers at its first frame; the runs are
@@ -57,7 +61,8 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
     first, last = frame_range(inputs.frames, inputs.clip.n_frames)
     clip = inputs.clip if (first, last) == (0, inputs.clip.n_frames) else inputs.clip.slice(first, last)
     source, target = inputs.source_rig, inputs.target_rig
-    n_control = check_inputs(clip, source, target, inputs.annotations, config)
+    n_control, annotations, remap = _check_inputs(clip, source, target, inputs.annotations, config,
+                                                  inputs.annotation_max_displacement)
     if pairs is not None and len(pairs.frame_offsets) != clip.n_frames + 1:
         raise InputError(f"the given contact pairs have {len(pairs.frame_offsets) - 1} frames, the clip "
                          f"{clip.n_frames}", element="pairs")
@@ -76,9 +81,9 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
         # 2. contact transfer through the atlas of log-map charts; 3. per-frame targets
         t0 = time.perf_counter()
         executor.report("transfer", 0, 1)
-        transferred = transfer_clip(pairs, source, target, inputs.annotations, workers=executor.workers,
+        transferred = transfer_clip(pairs, source, target, annotations, workers=executor.workers,
                                     cache_dir=executor.cache_dir)
-        markers = marker_targets(clip, source, target, inputs.annotations)
+        markers = marker_targets(clip, source, target, annotations)
         if config.markers.scale_fingers:
             markers = scale_finger_markers(markers, source, target)
         contacts = contact_targets(clip, pairs, transferred.contacts, keep_source_gap=config.contacts.keep_source_gap)
@@ -156,6 +161,8 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
     }
     provenance = {"version": __version__, "commit": _commit(), "inputs": inputs.provenance(),
                   "frames": [first, last], "config": config.to_dict(), "executor": executor.describe()}
+    if remap.changed:  # annotations carried onto edited meshes: how far their points moved
+        provenance["annotation_remap"] = remap.to_dict() | {"lines": remap.lines()}
     return RetargetResult(
         rig_name=target.name, dof_names=target.dof_names, dof_kinds=[d.kind for d in target.dofs],
         lower=target.lower, upper=target.upper, fps=float(clip.fps), times=times, q=q, curves=curves,
@@ -167,12 +174,20 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
         source_contact_count=np.diff(pairs.frame_offsets), source_hand=_source_snapshots(clip, count))
 
 
-def check_inputs(clip: Clip, source: Rig, target: Rig, annotations, config: RetargetConfig) -> int:
+def check_inputs(clip: Clip, source: Rig, target: Rig, annotations, config: RetargetConfig, *,
+                 annotation_max_displacement: float = DEFAULT_MAX_DISPLACEMENT) -> int:
     """Raise InputError on inputs that cannot give a result; return the control-point count.
     Checks: both rigs (``Rig.validate``: limits that hold the rest pose, closed surface, ...),
     the clip's hand mesh against the source rig's surface, the annotations' mesh signatures
-    against the rigs' surfaces, and a clip long enough for
+    against the rigs' surfaces (annotations with positions made for an earlier version of a mesh
+    are carried onto it first, points moving at most ``annotation_max_displacement`` metres, see
+    :func:`~retarget_core.transfer.annotations.remap_to_meshes`), and a clip long enough for
     the spline (>= 4 frames and >= ``fit.control_points`` when fixed)."""
+    return _check_inputs(clip, source, target, annotations, config, annotation_max_displacement)[0]
+
+
+def _check_inputs(clip, source, target, annotations, config, annotation_max_displacement):
+    """:func:`check_inputs`; (control points, the annotations on the rigs' meshes, RemapReport)."""
     source.validate(source=f"source rig {source.name!r}")
     target.validate(source=f"target rig {target.name!r}")
     if clip.hand_vertices.shape[1] != source.surface.n_vertices or not np.array_equal(clip.hand_faces,
@@ -181,6 +196,9 @@ def check_inputs(clip: Clip, source: Rig, target: Rig, annotations, config: Reta
                          f"faces) is not the source rig {source.name!r}'s surface ({source.surface.n_vertices} "
                          f"vertices, {len(source.surface.faces)} faces): give the rig the clip was made with as the "
                          "source rig", source="clip", element="source_rig")
+    annotations, remap = remap_to_meshes(annotations, source, target, max_displacement=annotation_max_displacement)
+    if remap.changed:
+        logger.warning("%s", remap)
     annotations.check_meshes(source.surface.faces, source.surface.n_vertices, target.surface.faces,
                              target.surface.n_vertices, source="annotations")
     fixed = config.fit.control_points
@@ -189,7 +207,7 @@ def check_inputs(clip: Clip, source: Rig, target: Rig, annotations, config: Reta
         why = f"fit.control_points = {fixed}" if fixed else f"a cubic B-spline has {MIN_CONTROL_POINTS} control points"
         raise InputError(f"the clip is too short for the spline fit: {clip.n_frames} frames, at least {need} needed "
                          f"({why})", source="clip", element="n_frames")
-    return config.n_control_points(clip.n_frames, clip.fps)
+    return config.n_control_points(clip.n_frames, clip.fps), annotations, remap
 
 
 # ---- the passes -------------------------------------------------------------------------------

@@ -365,8 +365,8 @@ def test_wrong_format_and_version():
     data["format"] = "handretarget.clip"
     bad(data, r"test\.json: format: not an annotation file")
     data = example()
-    data["version"] = 2
-    bad(data, r"version: unsupported annotation format version 2")
+    data["version"] = 3
+    bad(data, r"version: unsupported annotation format version 3")
     bad([1, 2], "JSON object")
 
 

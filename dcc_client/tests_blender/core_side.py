@@ -83,7 +83,20 @@ def annotations(path: str, rig_path: str) -> None:
     print(json.dumps({"markers": len(a.markers), "curves": len(a.curves)}))
 
 
+def propose(rig_path: str, out: str) -> None:
+    """Proposed annotations from the demo source hand onto the exported rig, with positions
+    (format version 2)."""
+    from retarget_core.clip.demo import source_rig
+    from retarget_core.rig.usd_io import read_rig_usd
+    from retarget_core.transfer.annotations import save_annotations, with_positions
+    from retarget_core.transfer.propose import propose_annotations
+
+    target, source = read_rig_usd(rig_path), source_rig(SOURCE_RESOLUTION)
+    save_annotations(with_positions(propose_annotations(source, target), source, target), out)
+    print(json.dumps({"faces": int(len(target.surface.faces)), "vertices": int(target.surface.n_vertices)}))
+
+
 if __name__ == "__main__":
     cmd, args = sys.argv[1], sys.argv[2:]
     {"inputs": lambda: inputs(Path(args[0])), "grab": lambda: grab(Path(args[0])), "rig": lambda: rig(*args),
-     "annotations": lambda: annotations(*args)}[cmd]()
+     "annotations": lambda: annotations(*args), "propose": lambda: propose(*args)}[cmd]()

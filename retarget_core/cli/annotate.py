@@ -1,4 +1,4 @@
-"""``handretarget annotate propose`` and ``handretarget annotate demo``."""
+"""``handretarget annotate propose``, ``handretarget annotate remap`` and ``handretarget annotate demo``."""
 
 from __future__ import annotations
 
@@ -13,6 +13,19 @@ def add_commands(sub) -> None:
     a_prop.add_argument("--target", required=True, help="target rig: a file or demo:NAME[@RESOLUTION]")
     a_prop.add_argument("--out", required=True, help="annotation JSON to write")
     a_prop.set_defaults(func=_cmd_annotate_propose)
+    a_remap = annotate_sub.add_parser(
+        "remap", help="carry annotations onto edited rig meshes (closest surface point), or give them positions",
+        description="Carry annotations onto the rigs' current meshes: a side whose mesh changed since the "
+                    "annotations were made has every point moved to the closest point of the new surface (the "
+                    "annotations need positions: version 2). Run against the rigs the annotations were made for, "
+                    "it writes them with positions, so that they survive later mesh edits.")
+    a_remap.add_argument("annotations", metavar="ANNOTATIONS", help="annotation JSON to carry over")
+    a_remap.add_argument("--source", required=True, help="source rig now: a file or demo:NAME[@RESOLUTION]")
+    a_remap.add_argument("--target", required=True, help="target rig now: a file or demo:NAME[@RESOLUTION]")
+    a_remap.add_argument("--out", required=True, help="annotation JSON to write (version 2, with positions)")
+    a_remap.add_argument("--max-displacement-mm", type=float, default=3.0, metavar="MM",
+                         help="refuse when a point moves further than this (default 3)")
+    a_remap.set_defaults(func=_cmd_annotate_remap)
     a_demo = annotate_sub.add_parser("demo", help="annotations from the demo source hand to every demo hand")
     a_demo.add_argument("--out", required=True)
     a_demo.add_argument("--resolution", type=float, default=0.004, help="target hands' mesh cell size (m)")
@@ -22,11 +35,12 @@ def add_commands(sub) -> None:
 
 def _cmd_annotate_propose(args) -> int:
     from ..rig.io import resolve_rig
-    from ..transfer.annotations import save_annotations
+    from ..transfer.annotations import save_annotations, with_positions
     from ..transfer.propose import propose_annotations
 
-    annotations = propose_annotations(resolve_rig(args.source), resolve_rig(args.target))
-    save_annotations(annotations, args.out)
+    source, target = resolve_rig(args.source), resolve_rig(args.target)
+    annotations = propose_annotations(source, target)
+    save_annotations(with_positions(annotations, source, target), args.out)  # positions: survive mesh edits
     kept = [c.name for c in annotations.curves if not c.discard]
     dropped = [c.name for c in annotations.curves if c.discard]
     print(f"wrote {args.out}: {len(annotations.markers)} markers, curves {', '.join(kept)}"
@@ -34,6 +48,21 @@ def _cmd_annotate_propose(args) -> int:
     for c in annotations.curves:
         if not c.discard:
             print(f"  {c.name:<9} lambda_a {c.target.lambda_a:<6} lambda_s {c.target.lambda_s.uniform}")
+    return 0
+
+
+def _cmd_annotate_remap(args) -> int:
+    from ..rig.io import resolve_rig
+    from ..transfer.annotations import load_annotations, remap_to_meshes, save_annotations, with_positions
+
+    annotations = load_annotations(args.annotations)
+    source, target = resolve_rig(args.source), resolve_rig(args.target)
+    remapped, report = remap_to_meshes(annotations, source, target, max_displacement=args.max_displacement_mm / 1000.0,
+                                       source=str(args.annotations))
+    save_annotations(with_positions(remapped, source, target), args.out)
+    for line in report.lines():
+        print(f"  {line}")
+    print(f"wrote {args.out}" + ("" if report.changed else " (meshes unchanged: positions added)"))
     return 0
 
 

@@ -19,6 +19,9 @@ def add_commands(sub) -> None:
     ret.add_argument("--set", action="append", metavar="KEY=VALUE",
                      help="configuration override, e.g. solver.maxeval=50 (repeatable)")
     ret.add_argument("--frames", metavar="START:END", help="retarget only these frames of the clip (end excluded)")
+    ret.add_argument("--max-annotation-displacement-mm", type=float, default=3.0, metavar="MM",
+                     help="annotations with positions made for an earlier version of a rig's mesh are carried onto "
+                          "its current mesh (closest surface point); refuse when a point moves further (default 3)")
     _executor_arguments(ret)
     ret.set_defaults(func=_cmd_retarget)
 
@@ -28,7 +31,8 @@ def _cmd_retarget(args) -> int:
     from ..solve.config import load_config
 
     config = load_config(args.config, args.preset, _parse_sets(args.set))
-    inputs = load_inputs(args.clip, args.rig, args.annotations, source_rig=args.source_rig, frames=args.frames)
+    inputs = load_inputs(args.clip, args.rig, args.annotations, source_rig=args.source_rig, frames=args.frames,
+                         annotation_max_displacement=args.max_annotation_displacement_mm / 1000.0)
     rig_path = None if str(args.rig).startswith("demo:") else args.rig
     result, paths = _run_retarget(inputs, config, _executor(args), Path(args.out), rig_path)
     s = result.summary
@@ -38,6 +42,8 @@ def _cmd_retarget(args) -> int:
     print(f"  median contact distance {_fmt_mm(s['contact_distance_median_mm'])} mm over {s['contact_frames']} "
           f"contact frames; marker error {_fmt_mm(s['marker_error_median_mm'])} mm; failed frames "
           f"{s['failed_frames']}; unresolved entries {s['unresolved_entries']}; fit failures {s['fit_failures']}")
+    for line in result.provenance.get("annotation_remap", {}).get("lines", []):
+        print(f"  annotations: {line}")
     for key, v in result.unused_settings.items():
         print(f"  note: {key} = {v['value']!r} is not used: {v['why']}")
     for path in paths.values():

@@ -2,8 +2,9 @@
 
 Paper: "Virtual Marker Alignment", "Contact Alignment" and the appendix "Artist Annotation
 Procedures". The annotations are made once per (source hand, target hand) pair and stored as
-JSON (``format`` "handretarget.annotations", ``version`` 1); the published JSON Schema (draft
-2020-12) is ``annotations.schema.json`` beside this module (:func:`annotations_schema`)::
+JSON (``format`` "handretarget.annotations", ``version`` 2, or 1 without positions); the
+published JSON Schema (draft 2020-12) is ``annotations.schema.json`` beside this module
+(:func:`annotations_schema`)::
 
     {
       "format": "handretarget.annotations", "version": 1,
@@ -35,14 +36,23 @@ JSON (``format`` "handretarget.annotations", ``version`` 1); the published JSON 
   of the log-map angle) scales the radial log-map coordinate of transferred contacts.
 * ``landmark_spacing`` (metres, > 0, default 0.002): resampling density of curves into
   landmarks.
+* Version 2 adds, optionally, a point's rest ``"position": [x, y, z]`` (metres: where the point
+  lies on the mesh it was made for, at that rig's bind pose) and a signature's
+  ``"surface_sha256"`` (:func:`surface_sha256` of that mesh's vertices and faces, so an edit
+  that keeps the counts is noticed too). With positions, annotations survive a mesh edit:
+  :func:`remap_to_meshes` moves every point to the closest point of the edited surface and
+  reports (and bounds) the displacement. :func:`with_positions` fills them in; a file is
+  written as version 2 when it carries any, else as version 1. Version 1 files still read.
 """
 
 from __future__ import annotations
 
 import functools
+import hashlib
 import json
+import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 
@@ -50,10 +60,18 @@ import numpy as np
 
 from ..errors import InputError
 from ..files import atomic_path
-from ..mesh.surface_points import SurfacePoints
+from ..mesh.surface_points import SurfacePoints, closest_surface_points
+
+logger = logging.getLogger(__name__)
 
 ANNOTATIONS_FORMAT = "handretarget.annotations"
-ANNOTATIONS_VERSION = 1
+#: The version written when points carry positions; :data:`READ_VERSIONS` are read.
+ANNOTATIONS_VERSION = 2
+READ_VERSIONS = (1, 2)
+#: :func:`remap_to_meshes` refuses to move a point further than this by default (metres).
+DEFAULT_MAX_DISPLACEMENT = 0.003
+#: A remapped point counts as moved when it moves further than this (metres).
+MOVED_TOLERANCE = 1e-9
 DEFAULT_LANDMARK_SPACING = 0.002  # metres
 SCHEMA_RESOURCE = "annotations.schema.json"
 BARYCENTRIC_TOLERANCE = 1e-6
@@ -63,7 +81,9 @@ MARKER_KINDS = ("one-to-one", "one-to-many", "many-to-one", "area-to-area")
 __all__ = [
     "ANNOTATIONS_FORMAT",
     "ANNOTATIONS_VERSION",
+    "READ_VERSIONS",
     "DEFAULT_LANDMARK_SPACING",
+    "DEFAULT_MAX_DISPLACEMENT",
     "MARKER_KINDS",
     "PointRef",
     "resolve_points",
@@ -78,6 +98,11 @@ __all__ = [
     "annotations_to_dict",
     "load_annotations",
     "save_annotations",
+    "surface_sha256",
+    "with_positions",
+    "SideRemap",
+    "RemapReport",
+    "remap_to_meshes",
 ]
 
 
@@ -107,13 +132,21 @@ def _index(value, what: str) -> int:
 @dataclass(frozen=True)
 class PointRef:
     """One annotated point: a vertex id, or a face id with barycentric coordinates (a, b, c)
-    (non-negative, summing to 1 within 1e-6) on that face's corners in order."""
+    (non-negative, summing to 1 within 1e-6) on that face's corners in order. ``position``:
+    optionally, where the point lies (metres, x y z) on the mesh it was made for at that rig's
+    bind pose (what lets :func:`remap_to_meshes` carry it onto an edited mesh)."""
 
     vertex: int | None = None
     face: int | None = None
     barycentric: tuple[float, float, float] | None = None
+    position: tuple[float, float, float] | None = None
 
     def __post_init__(self):
+        if self.position is not None:
+            pos = tuple(self.position)
+            if len(pos) != 3:
+                raise InputError(f"position needs 3 coordinates, got {len(pos)}")
+            object.__setattr__(self, "position", tuple(_finite_number(x, "position coordinate") for x in pos))
         if self.vertex is not None:
             if self.face is not None or self.barycentric is not None:
                 raise InputError("a point is either a vertex or a face with barycentric coordinates, not both")
@@ -134,12 +167,16 @@ class PointRef:
         object.__setattr__(self, "barycentric", bary)
 
     @classmethod
-    def at_vertex(cls, vertex: int) -> "PointRef":
-        return cls(vertex=vertex)
+    def at_vertex(cls, vertex: int, position=None) -> "PointRef":
+        return cls(vertex=vertex, position=None if position is None else tuple(position))
 
     @classmethod
-    def on_face(cls, face: int, barycentric) -> "PointRef":
-        return cls(face=face, barycentric=tuple(barycentric))
+    def on_face(cls, face: int, barycentric, position=None) -> "PointRef":
+        return cls(face=face, barycentric=tuple(barycentric), position=None if position is None else tuple(position))
+
+    def with_position(self, position) -> "PointRef":
+        """This point with its rest ``position`` (None: without)."""
+        return replace(self, position=None if position is None else tuple(float(x) for x in position))
 
     @property
     def is_vertex(self) -> bool:
@@ -154,17 +191,22 @@ class PointRef:
         return resolve_points([self], mesh_faces, n_vertices, what="point")
 
     def to_dict(self) -> dict:
-        if self.vertex is not None:
-            return {"vertex": self.vertex}
-        return {"face": self.face, "barycentric": list(self.barycentric)}
+        out = {"vertex": self.vertex} if self.vertex is not None else {"face": self.face,
+                                                                      "barycentric": list(self.barycentric)}
+        if self.position is not None:
+            out["position"] = list(self.position)
+        return out
 
     @classmethod
     def from_dict(cls, data) -> "PointRef":
         if not isinstance(data, dict):
             raise InputError(f"a point must be an object, not {data!r}")
+        position = data.get("position")
+        if position is not None and not isinstance(position, (list, tuple)):
+            raise InputError(f"position must be [x, y, z], not {position!r}")
         if "vertex" in data:
-            return cls(vertex=data["vertex"])
-        return cls(face=data.get("face"), barycentric=data.get("barycentric"))
+            return cls(vertex=data["vertex"], position=position)
+        return cls(face=data.get("face"), barycentric=data.get("barycentric"), position=position)
 
 
 def _first_incident_slot(mesh_faces: np.ndarray, n_vertices: int) -> np.ndarray:
@@ -470,14 +512,27 @@ class AxialCurveAnnotation:
 
 @dataclass(frozen=True)
 class MeshSignature:
-    """The mesh a side was annotated on: rig name and vertex / face counts."""
+    """The mesh a side was annotated on: rig name, vertex / face counts and optionally the
+    :func:`surface_sha256` of its vertices and faces."""
 
     rig: str
     vertices: int
     faces: int
+    surface_sha256: str | None = None
 
     def to_dict(self) -> dict:
-        return {"rig": self.rig, "vertices": self.vertices, "faces": self.faces}
+        out = {"rig": self.rig, "vertices": self.vertices, "faces": self.faces}
+        if self.surface_sha256 is not None:
+            out["surface_sha256"] = self.surface_sha256
+        return out
+
+    def matches(self, vertices: np.ndarray, faces: np.ndarray) -> bool:
+        """True when a mesh with these vertices (V, 3) and faces (F, 3) is the one described
+        (counts, and the hash when the signature has one)."""
+        faces = np.asarray(faces).reshape(-1, 3)
+        if (self.vertices, self.faces) != (len(vertices), len(faces)):
+            return False
+        return self.surface_sha256 is None or self.surface_sha256 == surface_sha256(vertices, faces)
 
 
 @dataclass(frozen=True)
@@ -530,6 +585,35 @@ class Annotations:
                 yield "target", f"axial curve '{c.name}' target start", c.target.start
                 yield "target", f"axial curve '{c.name}' target direction", c.target.direction
 
+    def has_positions(self, side: str | None = None) -> bool:
+        """True when any point (of ``side``, "source" or "target", or of either) has a position."""
+        return any(p.position is not None for s, _, p in self._point_sites() if side in (None, s))
+
+    def map_points(self, fn) -> "Annotations":
+        """A copy with every point replaced by ``fn(side, element, point)`` (the element names the
+        marker or curve as in messages); signatures and everything else unchanged."""
+        markers = [
+            MarkerPair(m.name, *(tuple(fn(side, f"marker '{m.name}' {side} point {i}", p)
+                                       for i, p in enumerate(getattr(m, side))) for side in ("source", "target")))
+            for m in self.markers
+        ]
+        curves = []
+        for c in self.curves:
+            kw = {}
+            if c.source_points is not None:
+                kw["source_points"] = tuple(fn("source", f"axial curve '{c.name}' source points[{i}]", p)
+                                            for i, p in enumerate(c.source_points))
+            else:
+                kw["source_start"] = fn("source", f"axial curve '{c.name}' source start", c.source_start)
+                kw["source_end"] = fn("source", f"axial curve '{c.name}' source end", c.source_end)
+            if c.target is not None:
+                kw["target"] = replace(
+                    c.target,
+                    start=fn("target", f"axial curve '{c.name}' target start", c.target.start),
+                    direction=fn("target", f"axial curve '{c.name}' target direction", c.target.direction))
+            curves.append(AxialCurveAnnotation(c.name, **kw))
+        return Annotations(self.source, self.target, markers, curves, self.landmark_spacing)
+
     def check_meshes(
         self,
         source_faces: np.ndarray,
@@ -550,7 +634,7 @@ class Annotations:
                 if expected != actual:
                     raise InputError(
                         f"annotations were made for rig '{sig.rig}' with {expected} {what}; this {side} "
-                        f"has {actual} (annotations made for another rig?)",
+                        f"has {actual} (annotations made for another rig?{REMAP_HINT})",
                         source=source,
                         element=f"{side} hand",
                     )
@@ -641,16 +725,17 @@ def annotations_from_dict(data, *, source: str = "") -> Annotations:
             source=source,
             element="format",
         )
-    if data.get("version") != ANNOTATIONS_VERSION or isinstance(data.get("version"), bool):
+    if data.get("version") not in READ_VERSIONS or isinstance(data.get("version"), bool):
         raise InputError(
             f"unsupported annotation format version {data.get('version')!r}; this library reads "
-            f"version {ANNOTATIONS_VERSION}",
+            f"versions {', '.join(map(str, READ_VERSIONS))}",
             source=source,
             element="version",
         )
     _schema_check(data, source)
 
-    sigs = {side: MeshSignature(data[side]["rig"], int(data[side]["vertices"]), int(data[side]["faces"]))
+    sigs = {side: MeshSignature(data[side]["rig"], int(data[side]["vertices"]), int(data[side]["faces"]),
+                                data[side].get("surface_sha256"))
             for side in ("source", "target")}
 
     def point(path: str, side: str, raw) -> PointRef:
@@ -711,10 +796,12 @@ def annotations_from_dict(data, *, source: str = "") -> Annotations:
 
 
 def annotations_to_dict(a: Annotations) -> dict:
-    """The JSON document of ``a`` (inverse of :func:`annotations_from_dict`)."""
+    """The JSON document of ``a`` (inverse of :func:`annotations_from_dict`): version 2 when a
+    point carries a position or a signature a surface hash, else version 1."""
+    v2 = a.has_positions() or any(sig.surface_sha256 is not None for sig in (a.source, a.target))
     return {
         "format": ANNOTATIONS_FORMAT,
-        "version": ANNOTATIONS_VERSION,
+        "version": 2 if v2 else 1,
         "source": a.source.to_dict(),
         "target": a.target.to_dict(),
         "landmark_spacing": a.landmark_spacing,
@@ -754,3 +841,187 @@ def save_annotations(a: Annotations, path) -> None:
     text = json.dumps(annotations_to_dict(a), indent=2, allow_nan=False) + "\n"
     with atomic_path(path, suffix=".json.tmp") as tmp:
         Path(tmp).write_text(text, encoding="utf-8")
+
+
+# --------------------------------------------------------------------------------------------
+# Positions, and remapping onto an edited mesh
+
+#: How to give annotations their positions (in the messages refusing an edited mesh).
+REMAP_HINT = (
+    "; if the rig's mesh was edited, re-save the annotations with their positions against the rigs they were "
+    "made for (handretarget annotate remap ANNOTATIONS --source RIG --target RIG --out NEW.json): annotations "
+    "with positions survive mesh edits"
+)
+
+
+def surface_sha256(vertices: np.ndarray, faces: np.ndarray) -> str:
+    """Hex sha256 of a mesh's vertices (V, 3) as little-endian float64 and faces (F, 3) as
+    little-endian int64, each preceded by its shape."""
+    v = np.ascontiguousarray(np.asarray(vertices, dtype="<f8").reshape(-1, 3))
+    f = np.ascontiguousarray(np.asarray(faces, dtype="<i8").reshape(-1, 3))
+    digest = hashlib.sha256()
+    digest.update(f"vertices{v.shape}".encode())
+    digest.update(v.tobytes())
+    digest.update(f"faces{f.shape}".encode())
+    digest.update(f.tobytes())
+    return digest.hexdigest()
+
+
+def _surface(rig):
+    surface = rig.surface
+    return np.asarray(surface.vertices, dtype=np.float64), np.asarray(surface.faces, dtype=np.int64).reshape(-1, 3)
+
+
+def _signature_of(rig) -> MeshSignature:
+    vertices, faces = _surface(rig)
+    return MeshSignature(rig.name, len(vertices), len(faces), surface_sha256(vertices, faces))
+
+
+def _side_positions(annotations: Annotations, side: str, rig) -> dict[str, np.ndarray]:
+    """{element: (3,) rest position on ``rig``} of every point of ``side`` (by its indices)."""
+    vertices, faces = _surface(rig)
+    sites = [(element, p) for s, element, p in annotations._point_sites() if s == side]
+    if not sites:
+        return {}
+    pts = resolve_points([p for _, p in sites], faces, len(vertices), what=f"{side} hand")
+    return dict(zip([e for e, _ in sites], pts.positions(vertices, faces)))
+
+
+def with_positions(annotations: Annotations, source_rig, target_rig) -> Annotations:
+    """``annotations`` with every point's rest position (on the rig its indices refer to, at its
+    bind pose) and both signatures carrying their rig's :func:`surface_sha256`. The rigs must be
+    the ones the annotations were made for (:meth:`Annotations.check_meshes`); a point that already
+    has a position gets the one its indices give."""
+    rigs = {"source": source_rig, "target": target_rig}
+    (sv, sf), (tv, tf) = _surface(source_rig), _surface(target_rig)
+    annotations.check_meshes(sf, len(sv), tf, len(tv))
+    positions = {side: _side_positions(annotations, side, rig) for side, rig in rigs.items()}
+    out = annotations.map_points(lambda side, element, p: p.with_position(positions[side][element]))
+    sigs = {side: replace(getattr(annotations, side), surface_sha256=_signature_of(rig).surface_sha256)
+            for side, rig in rigs.items()}
+    return replace(out, source=sigs["source"], target=sigs["target"])
+
+
+@dataclass(frozen=True)
+class SideRemap:
+    """What :func:`remap_to_meshes` did to one side. ``remapped``: the side's mesh differed
+    from its signature, so every point was moved to the closest point of the new surface;
+    ``points``: points on this side; ``moved``: how many moved (further than 1e-9 m);
+    ``max_displacement_mm`` and ``worst`` (the element, e.g. "marker 'IndexTip' target point
+    0") of the largest move; ``old`` and ``new``: the signatures before and after."""
+
+    side: str
+    remapped: bool
+    points: int
+    moved: int = 0
+    max_displacement_mm: float = 0.0
+    worst: str | None = None
+    old: MeshSignature | None = None
+    new: MeshSignature | None = None
+
+    def line(self) -> str:
+        if not self.remapped:
+            return f"{self.side}: mesh unchanged, {self.points} points kept"
+        return (f"{self.side}: mesh of rig '{self.new.rig}' changed ({self.old.vertices} -> {self.new.vertices} "
+                f"vertices, {self.old.faces} -> {self.new.faces} faces): {self.points} points remapped to the "
+                f"closest surface point, {self.moved} moved, largest displacement {self.max_displacement_mm:.3f} mm"
+                + (f" ({self.worst})" if self.worst else ""))
+
+    def to_dict(self) -> dict:
+        return {"remapped": self.remapped, "points": self.points, "moved": self.moved,
+                "max_displacement_mm": self.max_displacement_mm, "worst": self.worst}
+
+
+@dataclass(frozen=True)
+class RemapReport:
+    """Per side (``source``, ``target``) what :func:`remap_to_meshes` did."""
+
+    source: SideRemap
+    target: SideRemap
+    max_displacement_mm: float = field(default=DEFAULT_MAX_DISPLACEMENT * 1e3)
+
+    @property
+    def changed(self) -> bool:
+        """True when either side was remapped."""
+        return self.source.remapped or self.target.remapped
+
+    def lines(self) -> list[str]:
+        return [self.source.line(), self.target.line()]
+
+    def __str__(self) -> str:
+        return "annotations remapped onto edited meshes: " + "; ".join(self.lines()) if self.changed else \
+            "annotations match both meshes"
+
+    def to_dict(self) -> dict:
+        return {"source": self.source.to_dict(), "target": self.target.to_dict(),
+                "threshold_mm": self.max_displacement_mm}
+
+
+def remap_to_meshes(annotations: Annotations, source_rig, target_rig, *,
+                    max_displacement: float = DEFAULT_MAX_DISPLACEMENT,
+                    source: str = "annotations") -> tuple[Annotations, RemapReport]:
+    """Carry ``annotations`` onto the rigs' current surfaces. A side whose signature (counts, and
+    surface hash when present) matches its rig's surface is kept as it is. A side that does not
+    match needs every point's rest position (version 2 files, :func:`with_positions`): each point
+    becomes the closest point (face, barycentric) of the rig's surface at its bind pose, with that
+    point as its new position, and the side's signature becomes the rig's. Without positions the
+    mismatch is the InputError of :meth:`Annotations.check_meshes`.
+
+    Raises InputError naming the point that would move furthest when it moves further than
+    ``max_displacement`` (metres). Returns the new annotations and a :class:`RemapReport` (also
+    logged when a side was remapped)."""
+    limit = _finite_number(max_displacement, "max_displacement")
+    if limit <= 0:
+        raise InputError(f"the largest annotation displacement must be > 0, not {limit:g} m")
+    rigs = {"source": source_rig, "target": target_rig}
+    counts = {side: sum(1 for s, _, _ in annotations._point_sites() if s == side) for side in rigs}
+    sides, new_points, sigs = {}, {}, {}
+    for side, rig in rigs.items():
+        vertices, faces = _surface(rig)
+        sig = getattr(annotations, side)
+        sigs[side] = sig
+        if sig.matches(vertices, faces):
+            sides[side] = SideRemap(side, False, counts[side])
+            continue
+        sites = [(element, p) for s, element, p in annotations._point_sites() if s == side]
+        missing = next((element for element, p in sites if p.position is None), None)
+        if missing is not None:
+            for what, expected, actual in (("vertices", sig.vertices, len(vertices)), ("faces", sig.faces, len(faces))):
+                if expected != actual:  # the message of check_meshes
+                    raise InputError(
+                        f"annotations were made for rig '{sig.rig}' with {expected} {what}; this {side} "
+                        f"has {actual} (annotations made for another rig?{REMAP_HINT}; {missing} has no position)",
+                        source=source, element=f"{side} hand")
+            raise InputError(
+                f"annotations were made for rig '{sig.rig}' with another surface of {sig.vertices} vertices and "
+                f"{sig.faces} faces (its surface_sha256 differs): this {side}'s mesh was edited, and {missing} has "
+                f"no position to carry it over{REMAP_HINT}",
+                source=source, element=f"{side} hand")
+        old = np.array([p.position for _, p in sites], dtype=np.float64).reshape(-1, 3)
+        closest = closest_surface_points(vertices, faces, old)
+        new = closest.positions(vertices, faces)
+        moved = np.linalg.norm(new - old, axis=1)
+        worst = int(np.argmax(moved)) if len(moved) else None
+        largest = float(moved[worst]) if worst is not None else 0.0
+        if largest > limit:
+            raise InputError(
+                f"{sites[worst][0]} would move {largest * 1e3:.3f} mm onto the edited {side} mesh of rig "
+                f"{rig.name!r}, more than the {limit * 1e3:g} mm allowed: check the edit, or raise the limit "
+                "(handretarget retarget --max-annotation-displacement-mm MM, handretarget annotate remap "
+                "--max-displacement-mm MM)",
+                source=source, element=sites[worst][0])
+        new_points[side] = {
+            element: PointRef.on_face(int(f), b, position=x)
+            for (element, _), f, b, x in zip(sites, closest.faces, closest.barycentric, new)
+        }
+        sigs[side] = _signature_of(rig)
+        sides[side] = SideRemap(side, True, len(sites), int(np.sum(moved > MOVED_TOLERANCE)), largest * 1e3,
+                                sites[worst][0] if worst is not None and largest > MOVED_TOLERANCE else None,
+                                sig, sigs[side])
+    report = RemapReport(sides["source"], sides["target"], limit * 1e3)
+    if not report.changed:
+        return annotations, report
+    out = annotations.map_points(lambda side, element, p: new_points[side][element] if side in new_points else p)
+    out = replace(out, source=sigs["source"], target=sigs["target"])
+    logger.info("%s", report)
+    return out, report

@@ -239,7 +239,7 @@ def propose(body: ProposeRequest, response: Response, owner: str = Depends(curre
     from retarget_core.errors import InputError
     from retarget_core.inputs import DEFAULT_SOURCE_RIG
     from retarget_core.rig.io import load_rig, resolve_rig
-    from retarget_core.transfer.annotations import save_annotations
+    from retarget_core.transfer.annotations import save_annotations, with_positions
     from retarget_core.transfer.propose import propose_annotations
 
     def stored_rig(path):  # a stored rig is one flat layer: it may compose no other file
@@ -249,7 +249,8 @@ def propose(body: ProposeRequest, response: Response, owner: str = Depends(curre
     source_path = store.asset_path(owned(store, owner, body.source_rig, "rig", "source_rig")) if body.source_rig else None
     try:
         source = stored_rig(source_path) if source_path is not None else resolve_rig(DEFAULT_SOURCE_RIG)
-        annotations = propose_annotations(source, stored_rig(store.asset_path(target_asset)))
+        target = stored_rig(store.asset_path(target_asset))
+        annotations = with_positions(propose_annotations(source, target), source, target)  # survive mesh edits
     except InputError as err:
         raise HTTPException(422, f"cannot propose annotations: {err}") from err
     name = f"{source.name}_to_{target_asset.info.get('name', 'target')}.json"

@@ -12,6 +12,13 @@ The *source* side (points on the source hand, its mesh signature, landmark spaci
 authored on the target mesh: it is kept, per marker / curve name, from the last proposal or
 loaded file (``hand_retarget.source_json``). Points are written as (face, barycentric) on the
 core's triangles of the exported mesh (:func:`rig_export.core_triangles`).
+
+A target point is never snapped to a corner vertex: the (face, barycentric) points of a loaded
+file or proposal are kept as they are (``hand_retarget.target_json``, with their rest
+positions when they have one) as long as the marker's vertex group / the curve's vertex still
+shows them, and a point picked at the 3D cursor (:func:`surface_point`) is the cursor's closest
+point on the mesh, as barycentric coordinates in that core triangle. Only a vertex the artist
+puts in a group or picks is a vertex point (weight 1 on one corner).
 """
 
 from __future__ import annotations
@@ -22,6 +29,9 @@ from .rig_export import core_triangles
 
 FORMAT = "handretarget.annotations"
 VERSION = 1
+#: Versions read; version 2 adds optional rest positions to points and a surface hash to the
+#: mesh signatures (written when the document carries either).
+VERSIONS = (1, 2)
 DEFAULT_SPACING = 0.002
 
 
@@ -64,6 +74,114 @@ def point_vertex(point: dict, tris, n_vertices: int, what: str) -> int:
     return v
 
 
+def _barycentric(a, b, c, x):
+    """Barycentric coordinates of the point of triangle (a, b, c) closest to ``x`` (3-sequences)."""
+    sub = lambda u, v: [u[i] - v[i] for i in range(3)]  # noqa: E731
+    dot = lambda u, v: sum(u[i] * v[i] for i in range(3))  # noqa: E731
+    ab, ac, ax = sub(b, a), sub(c, a), sub(x, a)
+    d1, d2 = dot(ab, ax), dot(ac, ax)
+    if d1 <= 0 and d2 <= 0:
+        return [1.0, 0.0, 0.0]
+    bx = sub(x, b)
+    d3, d4 = dot(ab, bx), dot(ac, bx)
+    if d3 >= 0 and d4 <= d3:
+        return [0.0, 1.0, 0.0]
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0 and d1 >= 0 and d3 <= 0:
+        t = d1 / (d1 - d3)
+        return [1.0 - t, t, 0.0]
+    cx = sub(x, c)
+    d5, d6 = dot(ab, cx), dot(ac, cx)
+    if d6 >= 0 and d5 <= d6:
+        return [0.0, 0.0, 1.0]
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0 and d2 >= 0 and d6 <= 0:
+        t = d2 / (d2 - d6)
+        return [1.0 - t, 0.0, t]
+    va = d3 * d6 - d5 * d4
+    if va <= 0 and (d4 - d3) >= 0 and (d5 - d6) >= 0:
+        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        return [0.0, 1.0 - t, t]
+    denom = 1.0 / (va + vb + vc)
+    v, w = vb * denom, vc * denom
+    return [1.0 - v - w, v, w]
+
+
+def _blend(bary, corners):
+    return [sum(bary[k] * corners[k][i] for k in range(3)) for i in range(3)]
+
+
+def surface_point(me, co) -> tuple[dict, int]:
+    """The point of mesh ``me`` closest to ``co`` (mesh coordinates) as the core's point
+    ``{"face", "barycentric"}`` on :func:`rig_export.core_triangles` (an n-gon is split as the
+    export splits it, and the point lies in the fan triangle nearest to ``co``), and the corner
+    vertex nearest to it (for display)."""
+    from mathutils.bvhtree import BVHTree
+
+    verts = [tuple(v.co) for v in me.vertices]
+    polys = [tuple(p.vertices) for p in me.polygons]
+    if not polys:
+        raise AnnotationError("the mesh has no faces")
+    _, _, poly, _ = BVHTree.FromPolygons(verts, polys).find_nearest(tuple(co))
+    if poly is None:
+        raise AnnotationError("no face of the mesh is near the 3D cursor")
+    base = sum(len(q) - 2 for q in polys[:poly])
+    vs = polys[poly]
+    best = None
+    for k in range(1, len(vs) - 1):
+        corners = [verts[vs[0]], verts[vs[k]], verts[vs[k + 1]]]
+        bary = _barycentric(*corners, tuple(co))
+        at = _blend(bary, corners)
+        d = sum((at[i] - co[i]) ** 2 for i in range(3))
+        if best is None or d < best[0]:
+            best = (d, base + k - 1, bary, (vs[0], vs[k], vs[k + 1]))
+    _, face, bary, tri = best
+    total = sum(bary)
+    bary = [b / total for b in bary]
+    return {"face": face, "barycentric": bary}, tri[max(range(3), key=lambda k: bary[k])]
+
+
+def _as_face_point(point: dict, first) -> dict:
+    """A kept point as written: a vertex point becomes (face, barycentric) on its first
+    triangle (the same point), keeping its position; a face point is unchanged."""
+    if "vertex" not in point:
+        return point
+    out = vertex_point(int(point["vertex"]), first)
+    if "position" in point:
+        out["position"] = point["position"]
+    return out
+
+
+def kept_targets(mesh_obj) -> dict:
+    """The target points kept from the last file, proposal or cursor pick:
+    {"markers": {name: {"points", "vertices"}}, "curves": {name: {"start", "start_vertex",
+    "direction", "direction_vertex"}}}."""
+    text = mesh_obj.hand_retarget.target_json
+    kept = json.loads(text) if text else {}
+    return {"markers": kept.get("markers", {}), "curves": kept.get("curves", {})}
+
+
+def keep_target(mesh_obj, kind: str, name: str, entry: dict) -> None:
+    """Remember target points of marker / curve ``name`` (``kind`` "markers" or "curves")."""
+    kept = kept_targets(mesh_obj)
+    kept[kind].setdefault(name, {}).update(entry)
+    mesh_obj.hand_retarget.target_json = json.dumps(kept)
+
+
+def forget_target(mesh_obj, kind: str, name: str, which: str | None = None) -> None:
+    """Drop the kept target points of ``name`` (only ``which``, e.g. "start", when given)."""
+    kept = kept_targets(mesh_obj)
+    entry = kept[kind].get(name)
+    if entry is None:
+        return
+    if which is None:
+        del kept[kind][name]
+    else:
+        entry.pop(which, None)
+        entry.pop(f"{which}_vertex", None)
+    mesh_obj.hand_retarget.target_json = json.dumps(kept)
+
+
 def signature(arm, mesh_obj) -> dict:
     """The target mesh signature the service checks: vertex and (core) triangle counts."""
     me = mesh_obj.data
@@ -85,8 +203,8 @@ def load_document(doc, arm, mesh_obj) -> dict:
             doc = json.loads(doc)
         except ValueError as exc:
             raise AnnotationError(f"not JSON: {exc}") from None
-    if not isinstance(doc, dict) or doc.get("format") != FORMAT or doc.get("version") != VERSION:
-        raise AnnotationError(f"not a {FORMAT} version {VERSION} document")
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT or doc.get("version") not in VERSIONS:
+        raise AnnotationError(f"not a {FORMAT} document of version {' or '.join(map(str, VERSIONS))}")
     me = mesh_obj.data
     tris = core_triangles(me)
     target = doc.get("target") or {}
@@ -99,11 +217,13 @@ def load_document(doc, arm, mesh_obj) -> dict:
     if clashes:
         raise AnnotationError(f"marker names equal bone names (their vertex groups would skin): {clashes[:5]}")
     n = len(me.vertices)
-    markers = {}
+    markers, kept = {}, {"markers": {}, "curves": {}}
     for i, m in enumerate(doc.get("markers", [])):
         verts = sorted({point_vertex(p, tris, n, f"marker {m['name']!r} target point {j}")
                         for j, p in enumerate(m["target"])})
         markers[m["name"]] = verts
+        # the group shows the points' nearest corners; the points themselves are kept
+        kept["markers"][m["name"]] = {"points": m["target"], "vertices": verts}
     curves = []
     for c in doc.get("axial_curves", []):
         tgt = c["target"]
@@ -111,6 +231,8 @@ def load_document(doc, arm, mesh_obj) -> dict:
         if tgt != "discard":
             item["start"] = point_vertex(tgt["start"], tris, n, f"curve {c['name']!r} start")
             item["direction"] = point_vertex(tgt["direction"], tris, n, f"curve {c['name']!r} direction")
+            kept["curves"][c["name"]] = {"start": tgt["start"], "start_vertex": item["start"],
+                                         "direction": tgt["direction"], "direction_vertex": item["direction"]}
             item["lambda_a"] = float(tgt["lambda_a"])
             ls = tgt["lambda_s"]
             item["lambda_s"] = float(ls) if isinstance(ls, (int, float)) else 1.0
@@ -133,6 +255,7 @@ def load_document(doc, arm, mesh_obj) -> dict:
             c.start_vertex, c.direction_vertex = item["start"], item["direction"]
             c.lambda_a, c.lambda_s, c.lambda_s_json = item["lambda_a"], item["lambda_s"], item["lambda_s_json"]
     settings.curve_index = 0
+    settings.target_json = json.dumps(kept)
     settings.source_json = json.dumps({
         "source": doc["source"],
         "landmark_spacing": doc.get("landmark_spacing", DEFAULT_SPACING),
@@ -170,6 +293,7 @@ def build_document(arm, mesh_obj) -> tuple[dict, list[str]]:
     tris = core_triangles(me)
     first = _first_slots(tris, len(me.vertices))
     warnings = []
+    kept = kept_targets(mesh_obj)
     groups = marker_vertices(mesh_obj, exclude=bone_names(arm))
     markers = []
     for name, source_points in src["markers"].items():
@@ -180,8 +304,12 @@ def build_document(arm, mesh_obj) -> tuple[dict, list[str]]:
         if len(source_points) > 1 and len(verts) > 1 and len(verts) != len(source_points):
             raise AnnotationError(f"marker {name}: {len(source_points)} source points but {len(verts)} target "
                                   "vertices; an area needs the same number on both sides (or 1 on one side)")
-        markers.append({"name": name, "source": source_points,
-                        "target": [vertex_point(v, first) for v in verts]})
+        keep = kept["markers"].get(name)
+        if keep is not None and sorted(keep["vertices"]) == sorted(verts):  # group unchanged: the exact points
+            target_points = [_as_face_point(p, first) for p in keep["points"]]
+        else:
+            target_points = [vertex_point(v, first) for v in verts]
+        markers.append({"name": name, "source": source_points, "target": target_points})
     for name in groups:
         warnings.append(f"vertex group {name}: no marker of that name on the source side; ignored")
     curves = []
@@ -195,11 +323,36 @@ def build_document(arm, mesh_obj) -> tuple[dict, list[str]]:
             if item.lambda_a <= 0 or item.lambda_s <= 0:
                 raise AnnotationError(f"curve {item.name}: lambda_a and lambda_s must be positive")
             lambda_s = json.loads(item.lambda_s_json) if item.lambda_s_json else float(item.lambda_s)
-            target = {"start": vertex_point(item.start_vertex, first),
-                      "direction": vertex_point(item.direction_vertex, first),
+            keep = kept["curves"].get(item.name, {})
+
+            def point(which, vertex):  # the kept point while the curve still shows its vertex
+                if which in keep and keep.get(f"{which}_vertex") == vertex:
+                    return _as_face_point(keep[which], first)
+                return vertex_point(vertex, first)
+
+            target = {"start": point("start", item.start_vertex),
+                      "direction": point("direction", item.direction_vertex),
                       "lambda_a": float(item.lambda_a), "lambda_s": lambda_s}
         curves.append({"name": item.name, "source": src["curves"][item.name], "target": target})
     doc = {"format": FORMAT, "version": VERSION, "source": src["source"], "target": signature(arm, mesh_obj),
            "landmark_spacing": src.get("landmark_spacing", DEFAULT_SPACING),
            "markers": markers, "axial_curves": curves}
+    if _has_v2_fields(doc):
+        doc["version"] = 2
     return doc, warnings
+
+
+def _has_v2_fields(doc) -> bool:
+    """True when a document carries a point position or a surface hash (format version 2)."""
+    if any("surface_sha256" in (doc.get(side) or {}) for side in ("source", "target")):
+        return True
+    stack = [doc.get("markers"), doc.get("axial_curves")]
+    while stack:
+        x = stack.pop()
+        if isinstance(x, dict):
+            if "position" in x:
+                return True
+            stack.extend(x.values())
+        elif isinstance(x, list):
+            stack.extend(x)
+    return False

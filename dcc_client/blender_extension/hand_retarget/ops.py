@@ -222,26 +222,84 @@ class HAND_RETARGET_OT_curve_remove(_Op, bpy.types.Operator):
         return {'FINISHED'}
 
 
+def cursor_point(context, mesh):
+    """The core point (face, barycentric) of the mesh closest to the 3D cursor, and its nearest
+    corner vertex (see annotations.surface_point)."""
+    if mesh.mode == 'EDIT':
+        mesh.update_from_editmode()
+    co = mesh.matrix_world.inverted() @ context.scene.cursor.location
+    return annotations.surface_point(mesh.data, co)
+
+
 class HAND_RETARGET_OT_curve_pick(_Op, bpy.types.Operator):
-    """Set the selected curve's start or direction vertex to the selected vertex of the mesh
-    (the lowest id when several are selected)"""
+    """Set the selected curve's start or direction to the selected vertex of the mesh (the
+    lowest id when several are selected), or to the point of the mesh at the 3D cursor (kept
+    as a face and barycentric coordinates, not snapped to a vertex)"""
     bl_idname = "hand_retarget.curve_pick"
     bl_label = "Pick Vertex"
     bl_options = {'REGISTER', 'UNDO'}
 
     which: EnumProperty(items=[('START', "Start", ""), ('DIRECTION', "Direction", "")])
+    at_cursor: BoolProperty(name="At 3D Cursor", default=False,
+                            description="The point of the mesh closest to the 3D cursor instead of a selected vertex")
 
     def execute(self, context):
         _, mesh = targets(context)
         if mesh is None or not mesh.hand_retarget.curves:
             return self.fail("add a curve first")
+        item = mesh.hand_retarget.curves[mesh.hand_retarget.curve_index]
+        which = "start" if self.which == 'START' else "direction"
+        if self.at_cursor:
+            try:
+                point, v = cursor_point(context, mesh)
+            except annotations.AnnotationError as err:
+                return self.fail(err)
+            setattr(item, f"{which}_vertex", v)
+            annotations.keep_target(mesh, "curves", item.name, {which: point, f"{which}_vertex": v})
+            return {'FINISHED'}
         if mesh.mode == 'EDIT':
             mesh.update_from_editmode()
         v = next((x.index for x in mesh.data.vertices if x.select), None)
         if v is None:
             return self.fail("select a vertex of the mesh (Edit Mode)")
-        item = mesh.hand_retarget.curves[mesh.hand_retarget.curve_index]
-        setattr(item, "start_vertex" if self.which == 'START' else "direction_vertex", v)
+        setattr(item, f"{which}_vertex", v)
+        annotations.forget_target(mesh, "curves", item.name, which)
+        return {'FINISHED'}
+
+
+class HAND_RETARGET_OT_marker_at_cursor(_Op, bpy.types.Operator):
+    """Make a marker's target the point of the mesh at the 3D cursor (kept as a face and
+    barycentric coordinates; its vertex group shows the nearest vertex)"""
+    bl_idname = "hand_retarget.marker_at_cursor"
+    bl_label = "Marker at 3D Cursor"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    marker: StringProperty(name="Marker", description="Marker name (its vertex group is replaced)")
+
+    def invoke(self, context, event):
+        return context.window_manager.invoke_props_dialog(self)
+
+    def execute(self, context):
+        arm, mesh = targets(context)
+        if mesh is None:
+            return self.fail("select an armature with a skinned mesh")
+        if not self.marker or self.marker in annotations.bone_names(arm):
+            return self.fail("name a marker (not a bone)")
+        try:
+            point, v = cursor_point(context, mesh)
+        except annotations.AnnotationError as err:
+            return self.fail(err)
+        was_edit = mesh.mode == 'EDIT'
+        if was_edit:
+            bpy.ops.object.mode_set(mode='OBJECT')
+        group = mesh.vertex_groups.get(self.marker)
+        if group is not None:
+            mesh.vertex_groups.remove(group)
+        mesh.vertex_groups.new(name=self.marker).add([v], 1.0, 'REPLACE')
+        if was_edit:
+            bpy.ops.object.mode_set(mode='EDIT')
+        annotations.forget_target(mesh, "markers", self.marker)
+        annotations.keep_target(mesh, "markers", self.marker, {"points": [point], "vertices": [v]})
         return {'FINISHED'}
 
 
@@ -391,5 +449,6 @@ class HAND_RETARGET_OT_import_result(_Op, bpy.types.Operator):
 CLASSES = (HAND_RETARGET_OT_ping, HAND_RETARGET_OT_add_root_bone, HAND_RETARGET_OT_export_rig,
            HAND_RETARGET_OT_propose_annotations, HAND_RETARGET_OT_load_annotations,
            HAND_RETARGET_OT_save_annotations, HAND_RETARGET_OT_curve_add, HAND_RETARGET_OT_curve_remove,
+           HAND_RETARGET_OT_marker_at_cursor,
            HAND_RETARGET_OT_curve_pick, HAND_RETARGET_OT_submit, HAND_RETARGET_OT_cancel,
            HAND_RETARGET_OT_import_result)

@@ -49,6 +49,8 @@ class HR_ObjectSettings(bpy.types.PropertyGroup):
     curves: CollectionProperty(type=HR_Curve)
     curve_index: IntProperty(default=0)
     source_json: StringProperty(default="", description="Source side of the annotations (from a proposal or file)")
+    target_json: StringProperty(default="", description="Target points kept as (face, barycentric) from a "
+                                "proposal, file or 3D cursor pick")
     annotations_id: StringProperty(name="Annotations asset", default="")
 
 

@@ -49,6 +49,7 @@ class HAND_RETARGET_PT_panel(bpy.types.Panel):
         if mesh is not None:
             ms = mesh.hand_retarget
             box.label(text="Markers: vertex groups named like the marker")
+            box.operator("hand_retarget.marker_at_cursor", icon='PIVOT_CURSOR')
             row = box.row()
             row.template_list("HAND_RETARGET_UL_curves", "", ms, "curves", ms, "curve_index", rows=4)
             col = row.column(align=True)
@@ -60,9 +61,13 @@ class HAND_RETARGET_PT_panel(bpy.types.Panel):
                 r = col.row(align=True)
                 r.prop(item, "start_vertex")
                 r.operator("hand_retarget.curve_pick", text="", icon='EYEDROPPER').which = 'START'
+                op = r.operator("hand_retarget.curve_pick", text="", icon='PIVOT_CURSOR')
+                op.which, op.at_cursor = 'START', True
                 r = col.row(align=True)
                 r.prop(item, "direction_vertex")
                 r.operator("hand_retarget.curve_pick", text="", icon='EYEDROPPER').which = 'DIRECTION'
+                op = r.operator("hand_retarget.curve_pick", text="", icon='PIVOT_CURSOR')
+                op.which, op.at_cursor = 'DIRECTION', True
                 r = col.row(align=True)
                 r.prop(item, "lambda_a")
                 r.prop(item, "lambda_s")
