@@ -245,3 +245,24 @@ def test_a_mapping_file_is_checked(tmp_path):
     rig = demo_hand("prosthetic_1dof", RES)
     with pytest.raises(InputError, match="does not have"):
         hand_model(rig, HandMapping(palm="hand_r"))
+
+
+def test_the_command_line_proposes_for_a_foreign_rig_file(tmp_path, canonical):
+    import contextlib
+    import io
+
+    from retarget_core.cli import main
+    from retarget_core.rig.io import save_rig
+
+    rig, truth = rename(*canonical, "rigify")
+    rig, truth = mirror(*reroll(rig, truth, 90.0))
+    save_rig(rig, tmp_path / "left.usda")
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert main(["rig", "hand", str(tmp_path / "left.usda")]) == 0
+        assert main(["annotate", "propose", "--source", f"demo:source_human@{RES}", "--target",
+                     str(tmp_path / "left.usda"), "--out", str(tmp_path / "a.json")]) == 0
+    text = out.getvalue()
+    assert "left hand, palm joint 'hand.R'" in text  # the names say right, the geometry says left
+    assert "target human_alt: left hand, fingers thumb, index, middle, ring, pinky" in text
+    assert json.loads((tmp_path / "a.json").read_text())["target"]["rig"] == "human_alt"
