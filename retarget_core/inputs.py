@@ -144,13 +144,17 @@ class RunInputs:
 
 
 def resolve_rig_source(spec: str, **load_options) -> tuple[Rig, dict]:
-    """A rig from a file path or ``demo:NAME[@RES]``, with its provenance entry."""
-    from .rig.io import resolve_rig
+    """A rig from a file path, ``demo:NAME[@RES]`` or ``installed:NAME[@RES]``, with its
+    provenance entry."""
+    from .rig.io import installed_model, resolve_rig
 
     rig = resolve_rig(spec, **load_options)
     spec = str(spec)
     if spec.startswith("demo:"):
         return rig, {"spec": spec, "sha256": content_sha256(rig)}
+    if spec.startswith("installed:"):
+        model = installed_model(spec[len("installed:"):].partition("@")[0])
+        return rig, {"spec": spec, "path": str(model), "sha256": file_sha256(model)}
     return rig, {"path": str(Path(spec).resolve()), "sha256": file_sha256(spec)}
 
 

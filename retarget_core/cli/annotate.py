@@ -12,6 +12,10 @@ def add_commands(sub) -> None:
     a_prop.add_argument("--source", required=True, help="source rig: a file or demo:NAME[@RESOLUTION]")
     a_prop.add_argument("--target", required=True, help="target rig: a file or demo:NAME[@RESOLUTION]")
     a_prop.add_argument("--out", required=True, help="annotation JSON to write")
+    a_prop.add_argument("--source-hand-map", default=None,
+                        help="hand mapping JSON for the source rig (palm joint, finger joints, handedness), "
+                             "when its hand model cannot tell")
+    a_prop.add_argument("--hand-map", default=None, help="hand mapping JSON for the target rig")
     a_prop.set_defaults(func=_cmd_annotate_propose)
     a_remap = annotate_sub.add_parser(
         "remap", help="carry annotations onto edited rig meshes (closest surface point), or give them positions",
@@ -34,20 +38,28 @@ def add_commands(sub) -> None:
 
 
 def _cmd_annotate_propose(args) -> int:
+    from ..rig.hand_model import load_hand_mapping
     from ..rig.io import resolve_rig
     from ..transfer.annotations import save_annotations, with_positions
-    from ..transfer.propose import propose_annotations
+    from ..transfer.propose import propose
 
+    source_map = load_hand_mapping(args.source_hand_map) if args.source_hand_map else None
+    target_map = load_hand_mapping(args.hand_map) if args.hand_map else None
     source, target = resolve_rig(args.source), resolve_rig(args.target)
-    annotations = propose_annotations(source, target)
+    proposal = propose(source, target, source_mapping=source_map, target_mapping=target_map)
+    annotations = proposal.annotations
     save_annotations(with_positions(annotations, source, target), args.out)  # positions: survive mesh edits
     kept = [c.name for c in annotations.curves if not c.discard]
     dropped = [c.name for c in annotations.curves if c.discard]
     print(f"wrote {args.out}: {len(annotations.markers)} markers, curves {', '.join(kept)}"
           + (f"; discarded {', '.join(dropped)}" if dropped else ""))
+    for side, model in (("source", proposal.source_model), ("target", proposal.target_model)):
+        print(f"  {side} {model.rig_name}: {model.handedness} hand, fingers {', '.join(model.finger_names)}")
     for c in annotations.curves:
         if not c.discard:
             print(f"  {c.name:<9} lambda_a {c.target.lambda_a:<6} lambda_s {c.target.lambda_s.uniform}")
+    for message in proposal.messages():
+        print(f"  note: {message}")
     return 0
 
 

@@ -777,10 +777,11 @@ def _name_fingers(rig, chains, order, notes) -> dict[int, str]:
     return {i: name for i, name in zip(order, names)}
 
 
-def _bending_direction(rig: Rig, world: np.ndarray, group: list[int], direction: np.ndarray) -> np.ndarray | None:
-    """Where the articulation's main bending DOF curls the bone: the rotational DOF across the
-    bone with the widest range, toward its larger side; None when the joints carry no such DOF or
-    its range is about symmetric (the rig does not say which side flexes)."""
+def _bending_direction(rig: Rig, world: np.ndarray, group: list[int], direction: np.ndarray):
+    """Where the articulation's main bending DOF (the rotational DOF across the bone with the
+    widest range) curls the bone: (unit direction (3,), signed). ``signed`` is False when its
+    range is about symmetric (within 20 degrees): the rig then says in which plane the joint
+    bends but not toward which side. None when the joints carry no such DOF."""
     best, best_range = None, 0.0
     for d in rig.dofs:
         if d.joint in group and d.kind == "rotate":
@@ -790,10 +791,9 @@ def _bending_direction(rig: Rig, world: np.ndarray, group: list[int], direction:
             plus, minus = min(d.upper - d.rest, np.pi), min(d.rest - d.lower, np.pi)
             if plus + minus > best_range:
                 best_range = plus + minus
-                best = _unit(np.cross(a, direction)) * (1.0 if plus >= minus else -1.0), abs(plus - minus)
-    if best is None or best[1] < np.radians(20.0):
-        return None
-    return _perp(best[0], direction)
+                best = (_perp(np.cross(a, direction) * (1.0 if plus >= minus else -1.0), direction),
+                        abs(plus - minus) >= np.radians(20.0))
+    return best
 
 
 def _finger_model(rig, world, name, chain: _Chain, start, palmar, forward, knuckle_mean, owner, vertices) -> FingerModel:
@@ -817,13 +817,26 @@ def _finger_model(rig, world, name, chain: _Chain, start, palmar, forward, knuck
             # A link's pad turns with the link, and the next joint bends in the link's own frame,
             # so the next articulation's bending (carried back onto this bone) gives this link's
             # pad; the last link has only its own joint's.
+            # Prefer a joint whose range says the side (signed); else the plane the last joint
+            # bends in (a finger's distal joints flex, whatever their limits), carried back along
+            # the thumb, with the side nearer the estimate.
             bending = None
             if k + 1 < len(groups):
                 after = _bending_direction(rig, world, groups[k + 1], directions[k + 1])
-                if after is not None:
-                    bending = _transport(after, directions[k + 1], directions[k])
+                if after is not None and after[1]:
+                    bending = _transport(after[0], directions[k + 1], directions[k])
             if bending is None:
-                bending = _bending_direction(rig, world, group, directions[k])
+                own = _bending_direction(rig, world, group, directions[k])
+                if own is not None and own[1]:
+                    bending = own[0]
+            if bending is None:
+                distal = _bending_direction(rig, world, groups[-1], directions[-1])
+                if distal is not None:
+                    bending = distal[0]
+                    for j in range(len(groups) - 1, k, -1):
+                        bending = _transport(bending, directions[j], directions[j - 1])
+                    if bending @ palmar_k < 0:
+                        bending = -bending
             if bending is not None and bending @ palmar_k > 0.0:
                 palmar_k = bending
         flex_axis = _unit(np.cross(directions[k], palmar_k))
