@@ -16,6 +16,9 @@ def add_commands(sub) -> None:
                         help="hand mapping JSON for the source rig (palm joint, finger joints, handedness), "
                              "when its hand model cannot tell")
     a_prop.add_argument("--hand-map", default=None, help="hand mapping JSON for the target rig")
+    a_prop.add_argument("--png", nargs="?", const="", default=None, metavar="FILE",
+                        help="also draw both hands with the proposed curves and markers, seen from the palm "
+                             "and the back, to FILE (without FILE: next to the JSON, same name, .png)")
     a_prop.set_defaults(func=_cmd_annotate_propose)
     a_remap = annotate_sub.add_parser(
         "remap", help="carry annotations onto edited rig meshes (closest surface point), or give them positions",
@@ -60,6 +63,12 @@ def _cmd_annotate_propose(args) -> int:
             print(f"  {c.name:<9} lambda_a {c.target.lambda_a:<6} lambda_s {c.target.lambda_s.uniform}")
     for message in proposal.messages():
         print(f"  note: {message}")
+    if args.png is not None:
+        from ..render.annotation_view import draw_proposal
+
+        png = Path(args.png) if args.png else Path(args.out).with_suffix(".png")
+        draw_proposal(proposal, png, source_rig=source, target_rig=target)
+        print(f"wrote {png}")
     return 0
 
 
