@@ -17,33 +17,20 @@ import re
 import pytest
 
 from retarget_core.errors import InputError
-from retarget_core.rig.io import load_rig
+from retarget_core.rig.io import installed_model, load_rig
 from retarget_core.rig.robot_import import load_mjcf, load_urdf
 
 
 
-def _package_dir(name):
-    # as in tests/test_robot_import.py: find_spec does not import the wheel
-    import importlib.util
-    from pathlib import Path
-
+def _installed(name):
     try:
-        spec = importlib.util.find_spec(name)
-    except (ImportError, ValueError):
+        return installed_model(name)
+    except InputError:
         return None
-    if spec is None or not spec.submodule_search_locations:
-        return None
-    return Path(list(spec.submodule_search_locations)[0])
 
 
-def _file(package, *parts):
-    d = _package_dir(package)
-    p = d.joinpath(*parts) if d else None
-    return p if p is not None and p.is_file() else None
-
-
-LEAP = _file("ghand", "assets", "models", "urdf", "ghand_right.urdf")
-SHADOW = _file("gymnasium_robotics", "envs", "assets", "hand", "reach.xml")
+LEAP = _installed("leap")
+SHADOW = _installed("shadow")
 
 RES = 0.006  # coarse wrapper: these tests are about which files are read, not the surface
 

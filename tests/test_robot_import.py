@@ -3,7 +3,6 @@ libraries, and bad-input errors."""
 
 from __future__ import annotations
 
-import importlib.util
 import time
 from pathlib import Path
 
@@ -12,35 +11,20 @@ import pytest
 
 from retarget_core.errors import InputError
 from retarget_core.mesh.topology import check_closed_manifold
+from retarget_core.rig.io import installed_model
 from retarget_core.rig.robot_import import WRAPPER_OFFSET, load_mjcf, load_urdf
 
 
-def _package_dir(name: str) -> Path | None:
-    # find_spec of a top-level package does not import it (these wheels were installed
-    # without their dependencies, so importing them may fail).
+def _installed(name: str) -> Path | None:
+    """The installed model file (retarget_core.rig.io.INSTALLED_MODELS), or None without its wheel."""
     try:
-        spec = importlib.util.find_spec(name)
-    except (ImportError, ValueError):
+        return installed_model(name)
+    except InputError:
         return None
-    if spec is None or not spec.submodule_search_locations:
-        return None
-    return Path(list(spec.submodule_search_locations)[0])
 
 
-def _leap_urdf() -> Path | None:
-    d = _package_dir("ghand")
-    p = d / "assets" / "models" / "urdf" / "ghand_right.urdf" if d else None
-    return p if p is not None and p.is_file() else None
-
-
-def _shadow_mjcf() -> Path | None:
-    d = _package_dir("gymnasium_robotics")
-    p = d / "envs" / "assets" / "hand" / "reach.xml" if d else None
-    return p if p is not None and p.is_file() else None
-
-
-LEAP = _leap_urdf()
-SHADOW = _shadow_mjcf()
+LEAP = _installed("leap")
+SHADOW = _installed("shadow")
 RES = 0.0035
 
 needs_leap = pytest.mark.skipif(LEAP is None, reason="ghand wheel (LEAP hand URDF) not installed")
