@@ -13,7 +13,6 @@ import pytest
 
 from foreign_hands import (
     curl_at_rest,
-    drop_fingers,
     foreign_demo,
     insert_metacarpals,
     mirror,

@@ -850,7 +850,6 @@ def _finger_model(rig, world, name, chain: _Chain, start, palmar, forward, knuck
         previous = directions[k]
     joints = [j for g in groups for j in g]
     link_vertices = [np.nonzero(owner == j)[0] for j in joints]
-    owned = np.concatenate(link_vertices) if link_vertices else np.zeros(0, dtype=np.int64)
     # each link's surface against its own bone, so a finger curled at rest measures as straight
     # (its middle part: skinning bulges the surface near a bent joint)
     distances = []
