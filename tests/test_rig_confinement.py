@@ -16,21 +16,15 @@ import re
 
 import pytest
 
+from installed_models import installed_or_none
 from retarget_core.errors import InputError
-from retarget_core.rig.io import installed_model, load_rig
+from retarget_core.rig.io import load_rig
 from retarget_core.rig.robot_import import load_mjcf, load_urdf
 
 
 
-def _installed(name):
-    try:
-        return installed_model(name)
-    except InputError:
-        return None
-
-
-LEAP = _installed("leap")
-SHADOW = _installed("shadow")
+LEAP = installed_or_none("leap")
+SHADOW = installed_or_none("shadow")
 
 RES = 0.006  # coarse wrapper: these tests are about which files are read, not the surface
 

@@ -9,22 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from installed_models import installed_or_none
 from retarget_core.errors import InputError
 from retarget_core.mesh.topology import check_closed_manifold
-from retarget_core.rig.io import installed_model
 from retarget_core.rig.robot_import import WRAPPER_OFFSET, load_mjcf, load_urdf
 
 
-def _installed(name: str) -> Path | None:
-    """The installed model file (retarget_core.rig.io.INSTALLED_MODELS), or None without its wheel."""
-    try:
-        return installed_model(name)
-    except InputError:
-        return None
-
-
-LEAP = _installed("leap")
-SHADOW = _installed("shadow")
+LEAP = installed_or_none("leap")
+SHADOW = installed_or_none("shadow")
 RES = 0.0035
 
 needs_leap = pytest.mark.skipif(LEAP is None, reason="ghand wheel (LEAP hand URDF) not installed")
