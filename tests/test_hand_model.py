@@ -35,12 +35,6 @@ from retarget_core.transfer.propose import propose
 RES = 0.005
 PALMAR_TOLERANCE_DEG = 20.0
 SAME_POINT_M = 1e-3
-#: A pose baked into the bind pose by linear blend skinning makes a different surface: skin near a
-#: bent joint slides over it (blended vertices move by up to 5 mm, tests/foreign_hands.py), so a
-#: point "straight dorsal of the knuckle" is another material point on the curled hand. Measured
-#: worst: 5.2 mm (curled 30 degrees, pinky curve start), 6.8 mm (thumb turned 25 degrees, ThumbBase).
-SAME_POINT_BAKED_M = 8e-3
-BAKED = ("curled-30", "thumb-turned")
 
 
 @pytest.fixture(scope="module")
@@ -152,14 +146,10 @@ def _sites(annotations, rig, canonical_vertices):
     return out
 
 
-def _compare(reference, other, label, *, baked=False, tolerance=SAME_POINT_M):
+def _compare(reference, other, label, *, tolerance=SAME_POINT_M):
     assert reference.keys() == other.keys(), label
     worst, where = 0.0, ""
     for key, value in reference.items():
-        if key.endswith("lambda") and baked and key.split()[1] in ("palm", "knuckles"):
-            # a pose baked by skinning moves the blended palm skin near the knuckles by up to
-            # 5 mm: the palm's measured spans differ for real there; its points are still checked
-            continue
         if key.endswith("lambda"):
             # 2 %: a pose baked into the bind pose by linear blend skinning changes the surface
             # itself (fingers bulge at bent joints by about 1.5 % of their girth)
@@ -181,8 +171,7 @@ def test_a_foreign_hands_proposal_equals_the_canonical_one(source, canonical, va
     vertices0 = rig0.surface.vertices
     reference = _sites(propose(source, rig0).annotations, rig0, vertices0)
     other = _sites(propose(source, rig).annotations, rig, vertices0)
-    baked = variant in BAKED
-    _compare(reference, other, variant, baked=baked, tolerance=SAME_POINT_BAKED_M if baked else SAME_POINT_M)
+    _compare(reference, other, variant)
 
 
 def test_the_source_markers_follow_the_hand_not_its_names(canonical, variants):

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..mesh.surface_points import SurfacePoints, closest_surface_points
-from .hand_model import FINGER_NAMES, HandModel, hand_model
+from .hand_model import FINGER_NAMES, FingerModel, HandModel, hand_model
 from .model import Rig
 
 __all__ = ["FINGER_NAMES", "Finger", "hand_fingers", "palm_vertices", "source_markers", "closest_hand_points",
@@ -135,6 +135,26 @@ def surface_along(rig: Rig, model: HandModel, origins: np.ndarray, directions: n
     return SurfacePoints(out_faces, out_bary)
 
 
+def articulation_sites(rig: Rig, model: HandModel, finger: FingerModel, ks, side: float) -> np.ndarray:
+    """(len(ks), 3) unit directions from the articulations ``ks`` of ``finger`` to the skin
+    straight palmar (``side`` +1) or dorsal (-1) of them, as the skin lies on the rig: a first
+    ray along the bisector of the two bones finds the skin over the joint, the distal bone's
+    share of the skin weights there says how far that skin turned with the joint
+    (:meth:`HandModel.articulation_palmar`)."""
+    ks = list(ks)
+    origins = np.array([finger.segments[k].start for k in ks])
+    first = np.array([side * model.articulation_palmar(finger, k) for k in ks])
+    hit = surface_along(rig, model, origins, first)
+    weights = rig.surface.dense_weights(len(rig.joints))
+    out = []
+    for i, k in enumerate(ks):
+        distal = [j for seg in finger.segments[k:] for j in seg.joints]
+        corners = rig.surface.faces[hit.faces[i]]
+        follow = float(hit.barycentric[i] @ weights[corners][:, distal].sum(axis=1))
+        out.append(side * model.articulation_palmar(finger, k, follow=float(np.clip(follow, 0.0, 1.0))))
+    return np.array(out)
+
+
 # ---- source markers ---------------------------------------------------------------------------
 def marker_sites(rig: Rig, model: HandModel) -> dict[str, tuple[np.ndarray, np.ndarray, bool]]:
     """The paper's 25 marker names and where each lies, as a ray (origin (3,), direction (3,),
@@ -148,10 +168,9 @@ def marker_sites(rig: Rig, model: HandModel) -> dict[str, tuple[np.ndarray, np.n
     sites: dict[str, tuple[np.ndarray, np.ndarray, bool]] = {}
     for finger in model.fingers:
         title = finger.name.capitalize()
-        for label, k in (("Base", 0), ("Middle", 1), ("Tip", 2)):
-            if k < len(finger.segments):
-                seg = finger.segments[k]
-                sites[f"{title}{label}"] = (seg.start, -seg.palmar, False)
+        ks = [k for k in range(3) if k < len(finger.segments)]
+        for k, direction in zip(ks, articulation_sites(rig, model, finger, ks, -1.0)):
+            sites[f"{title}{('Base', 'Middle', 'Tip')[k]}"] = (finger.segments[k].start, direction, False)
         last = finger.segments[-1]
         sites[f"{title}Fingertip"] = (last.start, finger.tip - last.start, False)
     for label, name in (("BackIndex", "index"), ("BackRing", "ring")):

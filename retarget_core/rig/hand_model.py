@@ -48,6 +48,9 @@ NON_THUMB_NAMES = FINGER_NAMES[1:]
 
 #: Joints closer than this fraction of the hand's size are one articulation.
 COINCIDENT_FRACTION = 0.01
+#: Skin weight share below which a vertex counts as not carried by a joint (blended skin moves
+#: when a rig is bound bent; the frames are measured on skin carried by one part alone).
+MAX_FINGER_SHARE = 0.05
 #: The thumb must point at least this far (degrees) from the other chains' mean direction,
 #: and this much further than the next most deviating chain.
 THUMB_MIN_DEVIATION_DEG = 20.0
@@ -227,6 +230,24 @@ class HandModel:
     def finger_names(self) -> list[str]:
         return [f.name for f in self.fingers]
 
+    def articulation_palmar(self, finger: FingerModel, k: int, follow: float = 0.5) -> np.ndarray:
+        """(3,) unit: the palmar direction at the k-th articulation of ``finger``: between the
+        palmar sides of the two bones it joins (segment k-1's, or the palm's for k = 0), turned
+        toward the distal bone's by ``follow`` (0..1).
+
+        Blend skinning turns the skin over a bent joint by the share of the bend its skin
+        weights give the distal bone (:func:`retarget_core.rig.anatomy.articulation_sites`
+        measures it), so a point straight palmar (or dorsal) of a joint along this direction is
+        the same material point whether the rig was bound straight or bent. When the two sides
+        are more than 120 degrees apart (a thumb whose pad faces away from the palm's side) the
+        segment's own palmar direction is used."""
+        own = finger.segments[k].palmar
+        before = self.palmar if k == 0 else finger.segments[k - 1].palmar
+        if float(np.linalg.norm(own + before)) < 1.0:
+            return own
+        mean = follow * own + (1.0 - follow) * before
+        return mean / np.linalg.norm(mean)
+
     def hand_faces(self, faces: np.ndarray) -> np.ndarray:
         """Ids of the faces (F, 3) whose three vertices are all hand vertices."""
         return np.nonzero(self.hand_vertices[np.asarray(faces)].all(axis=1))[0]
@@ -326,7 +347,8 @@ class _Chain:
         return float(np.linalg.norm(np.diff(self.polyline, axis=0), axis=1).sum())
 
 
-def _chain_geometry(joints: list[int], positions, owner, vertices, scale, mesh) -> _Chain | None:
+def _chain_geometry(joints: list[int], positions, weights, vertices, scale, mesh) -> _Chain | None:
+    owner = weights.argmax(axis=1)
     groups: list[list[int]] = []
     for j in joints:
         if groups and np.linalg.norm(positions[j] - positions[groups[-1][0]]) <= COINCIDENT_FRACTION * scale:
@@ -341,7 +363,9 @@ def _chain_geometry(joints: list[int], positions, owner, vertices, scale, mesh) 
     # The tip: where the last link's axis (from its articulation toward its surface's centre, so
     # a curled or re-rolled finger reads the same) leaves the surface: the centre of a flat robot
     # fingertip, the apex of a round one.
-    along = _unit(vertices[last].mean(axis=0) - points[-1])
+    # Measured on the skin the last link carries alone (blended skin at a bent joint moves).
+    alone = last[weights[last][:, groups[-1]].sum(axis=1) >= 1.0 - MAX_FINGER_SHARE]
+    along = _unit(vertices[alone if len(alone) >= 3 else last].mean(axis=0) - points[-1])
     if not np.any(along) and len(points) > 1:
         along = _unit(points[-1] - points[-2])
     reach = float(np.max((vertices[last] - points[-1]) @ along))
@@ -367,7 +391,8 @@ def hand_model(rig: Rig, mapping: HandMapping | None = None) -> HandModel:
     world = rig.kinematics().bind_world
     positions = world[:, :3, 3]
     vertices = rig.surface.vertices
-    owner = rig.surface.dense_weights(n).argmax(axis=1)
+    weights = rig.surface.dense_weights(n)
+    owner = weights.argmax(axis=1)
     scale = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
     parents = [j.parent for j in rig.joints]
     children: list[list[int]] = [[] for _ in range(n)]
@@ -399,7 +424,7 @@ def hand_model(rig: Rig, mapping: HandMapping | None = None) -> HandModel:
         named = {f: [by_name(j, f"joint of {f}") for j in js] for f, js in mapping.fingers.items()}
         chains = {}
         for f, js in named.items():
-            chain = _chain_geometry(js, positions, owner, vertices, scale, mesh)
+            chain = _chain_geometry(js, positions, weights, vertices, scale, mesh)
             if chain is None:
                 raise InputError(f"finger {f!r} of the hand mapping owns no surface", source=rig.name,
                                  element="hand mapping")
@@ -417,7 +442,7 @@ def hand_model(rig: Rig, mapping: HandMapping | None = None) -> HandModel:
             # A chain that climbs to the top of the tree is the whole body, not a finger.
             if parents[path[0]] < 0:
                 continue
-            chain = _chain_geometry(path, positions, owner, vertices, scale, mesh)
+            chain = _chain_geometry(path, positions, weights, vertices, scale, mesh)
             if chain is not None and len(chain.groups) >= 2:
                 chain_list.append(chain)
         if chain_list:
@@ -487,7 +512,7 @@ def hand_model(rig: Rig, mapping: HandMapping | None = None) -> HandModel:
                 notes.append(f"{rig.joints[chain_list[i].joints[0]].name!r}..: "
                              f"{starts[i]} joint(s) inside the palm (metacarpals)")
         frame = _palm_axes(rig, chain_list, starts, thumb, palm_pos, palm_joints, owner, vertices)
-    forward, lateral, normal, centroid, palm_ids = frame
+    forward, lateral, normal, centroid, palm_ids, frame_ids = frame
 
     # 5. The palmar side (and so the handedness).
     if mapping.handedness is not None and thumb is not None:
@@ -504,8 +529,13 @@ def hand_model(rig: Rig, mapping: HandMapping | None = None) -> HandModel:
         handedness = "right" if lateral @ np.cross(forward, palmar) > 0 else "left"
 
     # 6. Wrist point and hand vertices.
-    proj = (vertices[palm_ids] - centroid) @ forward
-    wrist = centroid + forward * float(np.percentile(proj, 2.0)) if len(palm_ids) else palm_pos.copy()
+    if len(frame_ids):
+        # across the palm: the middle of the whole palm (the thumb's blended base is palm too)
+        across = (vertices[palm_ids].mean(axis=0) - centroid) @ lateral
+        proj = (vertices[frame_ids] - centroid) @ forward
+        wrist = centroid + lateral * float(across) + forward * float(np.percentile(proj, 2.0))
+    else:
+        wrist = palm_pos.copy()
     hand_joint_set = set(palm_joints)
     for i, c in enumerate(chain_list):
         hand_joint_set |= set(c.joints)
@@ -581,7 +611,8 @@ def _find_thumb(rig: Rig, chains: list[_Chain], palm_pos: np.ndarray, notes: lis
 
 
 def _palm_axes(rig, chains, starts, thumb, palm_pos, palm_joints, owner, vertices, *, first_pass=False):
-    """(forward, lateral toward the thumb, normal (sign undecided), palm centroid, palm vertex ids).
+    """(forward, lateral toward the thumb, normal (sign undecided), palm centroid, palm vertex ids,
+    the ids of those no finger carries (the frame and the wrist are measured on them)).
 
     The palm is the surface owned by the palm joints and the metacarpals (leading chain joints
     inside the palm), without what lies far behind the palm joint (a forearm, a mount). Its
@@ -600,7 +631,13 @@ def _palm_axes(rig, chains, starts, thumb, palm_pos, palm_joints, owner, vertice
         forward = _unit(np.mean([c.tip for c in chains], axis=0) - palm_pos)
     reach = max(float(np.linalg.norm(knuckle_mean - palm_pos)), 1e-3)
     ids = palm_owned[((vertices[palm_owned] - palm_pos) @ forward) >= -0.5 * reach]
-    centroid = vertices[ids].mean(axis=0) if len(ids) else palm_pos
+    # The frame and the wrist are measured on palm skin that no finger carries: skin blended
+    # with a finger or the thumb moves when a rig is bound with them bent, the palm does not.
+    finger_joints = sorted({j for c in chains for j in c.joints} - palm_owners)
+    carried = rig.surface.dense_weights(len(rig.joints))[ids][:, finger_joints].sum(axis=1)
+    rigid = ids[carried <= MAX_FINGER_SHARE]
+    frame_ids = rigid if len(rigid) >= max(10, len(ids) // 4) else ids
+    centroid = vertices[frame_ids].mean(axis=0) if len(frame_ids) else palm_pos
     # Lateral: across the knuckles; then the normal (the slab's thinnest axis when the palm is
     # clearly flat, else from the wrist-to-knuckles direction), then forward completes the frame.
     if len(others) >= 2:
@@ -616,8 +653,8 @@ def _palm_axes(rig, chains, starts, thumb, palm_pos, palm_joints, owner, vertice
         lateral = _perp(chains[thumb].points[0] - knuckle_mean, forward)
     towards = knuckle_mean - centroid if np.linalg.norm(knuckle_mean - centroid) > 1e-6 else forward
     normal = _unit(np.cross(_perp(towards, lateral), lateral))
-    if len(ids) >= 10:
-        _, sv, axes = np.linalg.svd(vertices[ids] - centroid, full_matrices=False)
+    if len(frame_ids) >= 10:
+        _, sv, axes = np.linalg.svd(vertices[frame_ids] - centroid, full_matrices=False)
         slab = _perp(axes[2], lateral)
         if sv[2] < 0.6 * sv[1] and abs(slab @ normal) > 0.7:
             normal = slab
@@ -627,7 +664,7 @@ def _palm_axes(rig, chains, starts, thumb, palm_pos, palm_joints, owner, vertice
     if thumb is not None and (chains[thumb].points[0] - knuckle_mean) @ lateral < 0:
         lateral = -lateral
     normal = _unit(np.cross(forward, lateral))
-    return forward, lateral, normal, centroid, ids
+    return forward, lateral, normal, centroid, ids, frame_ids
 
 
 def _ray_mesh(rig: Rig):

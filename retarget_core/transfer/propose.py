@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
-from ..rig.anatomy import closest_hand_points, marker_sites, place_markers, surface_along
+from ..rig.anatomy import articulation_sites, closest_hand_points, marker_sites, place_markers, surface_along
 from ..rig.hand_model import HandMapping, HandModel, hand_model
 from ..rig.model import Rig
 from .annotations import (
@@ -74,7 +74,7 @@ def _surface_along(rig: Rig, model: HandModel, origin, direction, *, palm_only=F
 
 def _curve_start(rig: Rig, model: HandModel, finger) -> PointRef:
     """Where a finger's curve starts: on the surface straight palmar of its knuckle."""
-    return _surface_along(rig, model, finger.knuckle, finger.segments[0].palmar)
+    return _surface_along(rig, model, finger.knuckle, articulation_sites(rig, model, finger, [0], 1.0)[0])
 
 
 def _palm_sites(rig: Rig, model: HandModel) -> list[PointRef]:
