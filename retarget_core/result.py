@@ -105,12 +105,13 @@ class RetargetResult:
         })
 
     def write(self, out_dir, rig_path=None) -> dict:
-        """Write animation.usda (over ``rig_path`` when it is a USD file, else over a rig.usda
-        written here), result.json, animation.json and scene.npz (object mesh and poses, table,
+        """Write animation.usda (over ``rig_path`` when it is a rig file the layer composes over,
+        :func:`~retarget_core.export.usd_animation.layers_over`; else over a rig.usda written here), result.json, animation.json and scene.npz (object mesh and poses, table,
         the frame's contact targets: what ``handretarget evaluate`` measures against) into
         ``out_dir``; returns {name: path}. Without curves (fit pass off) no animation.usda is
         written. result.json names the rig file (``rig_file``)."""
         from .export import write_animation_json, write_animation_usd
+        from .export.usd_animation import layers_over
         from .rig.io import USD_SUFFIXES, load_rig, save_rig
 
         out = Path(out_dir)
@@ -119,6 +120,8 @@ class RetargetResult:
             raise InputError("writing a loaded result needs the rig file", element="rig_path")
         rig = self.rig if self.rig is not None else load_rig(rig_path)
         paths = {}
+        if rig_path is not None and Path(str(rig_path)).suffix.lower() in USD_SUFFIXES and not layers_over(rig, rig_path):
+            rig_path = None  # a plain UsdSkel file or other units: the layer goes over a rig.usda written here
         if self.curves is not None:
             if rig_path is None or Path(str(rig_path)).suffix.lower() not in USD_SUFFIXES:
                 rig_path = paths["rig.usda"] = out / "rig.usda"

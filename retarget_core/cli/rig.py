@@ -1,4 +1,4 @@
-"""``handretarget rig demo`` and ``handretarget rig info``."""
+"""``handretarget rig demo``, ``rig info``, ``rig hand`` and ``rig import``."""
 
 from __future__ import annotations
 
@@ -26,7 +26,23 @@ def add_commands(sub) -> None:
     rig_info.add_argument("--root-body", default=None, help="MJCF: the hand's root body")
     rig_info.add_argument("--wrapper-resolution", type=float, default=0.002,
                           help="URDF/MJCF: wrapper surface cell size in metres")
+    rig_info.add_argument("--hand-map", default=None,
+                          help="hand mapping JSON, when DOFs are inferred and the hand model cannot tell")
     rig_info.set_defaults(func=_cmd_rig_info)
+    rig_import = rig_sub.add_parser(
+        "import", help="read any rig (plain UsdSkel, URDF, MJCF) and write it as a rig file with its DOF spec, "
+                       "plus its DOF limits as TOML for editing")
+    rig_import.add_argument("path", help="the rig file as the other tool wrote it")
+    rig_import.add_argument("--out", required=True, help="rig .usda to write")
+    rig_import.add_argument("--limits", default=None,
+                            help="TOML of DOF limits by joint (as this command writes it) to apply")
+    rig_import.add_argument("--limits-out", default=None,
+                            help="where to write the DOF limits TOML (default: next to --out, .limits.toml)")
+    rig_import.add_argument("--hand-map", default=None, help="hand mapping JSON that settles what detection cannot")
+    rig_import.add_argument("--root-body", default=None, help="MJCF: the hand's root body")
+    rig_import.add_argument("--wrapper-resolution", type=float, default=0.002,
+                            help="URDF/MJCF: wrapper surface cell size in metres")
+    rig_import.set_defaults(func=_cmd_rig_import)
 
 
 def _cmd_rig_demo(args) -> int:
@@ -81,9 +97,41 @@ def _cmd_rig_info(args) -> int:
     from ..rig.io import load_rig
     from ..rig.summary import format_rig_info, rig_summary
 
-    rig = load_rig(args.path, wrapper_resolution=args.wrapper_resolution, root_body=args.root_body)
+    rig = load_rig(args.path, wrapper_resolution=args.wrapper_resolution, root_body=args.root_body,
+                   mapping=_mapping(args.hand_map))
     if args.json:
         print(json.dumps(rig_summary(rig), indent=2))
     else:
         print(format_rig_info(rig, source=str(args.path)))
+    return 0
+
+
+def _mapping(path):
+    from ..rig.hand_model import load_hand_mapping
+
+    return load_hand_mapping(path) if path else None
+
+
+def _cmd_rig_import(args) -> int:
+    from ..files import atomic_path
+    from ..rig.dof_limits import apply_limits, limits_toml
+    from ..rig.io import load_rig, save_rig
+
+    rig = load_rig(args.path, wrapper_resolution=args.wrapper_resolution, root_body=args.root_body,
+                   mapping=_mapping(args.hand_map))
+    if args.limits:
+        rig = apply_limits(rig, args.limits)
+    out = Path(args.out)
+    limits_out = Path(args.limits_out) if args.limits_out else out.with_suffix(".limits.toml")
+    inferred = "dof_source" in rig.metadata
+    if inferred:
+        rig.metadata["dof_source"] = (f"inferred by role from {Path(args.path).name} (`handretarget rig import`"
+                                      + (f", limits from {Path(args.limits).name}" if args.limits else "")
+                                      + f"); limits by joint in {limits_out.name}")
+    save_rig(rig, out)
+    with atomic_path(limits_out) as tmp:
+        Path(tmp).write_text(limits_toml(rig), encoding="utf-8")
+    print(f"wrote {out}: {rig.n_joints} joints, {rig.n_dofs} DOFs "
+          f"({'inferred by role' if inferred else 'as the file gives them'})")
+    print(f"wrote {limits_out}: the DOF limits by joint, to edit and pass back with --limits")
     return 0

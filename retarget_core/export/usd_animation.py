@@ -115,6 +115,25 @@ def local_joint_transforms(rig: Rig, q: np.ndarray) -> np.ndarray:
     return local
 
 
+def layers_over(rig: Rig, rig_file) -> bool:
+    """Whether an animation layer for ``rig`` can compose over ``rig_file`` as it is: a rig file
+    with the handretarget DOF spec, in metres and Z-up, with the rig's joints. A plain UsdSkel
+    file (DOFs inferred, maybe a free root added) or one in other units or axes gets a rig.usda
+    written beside the result instead (:meth:`retarget_core.result.RetargetResult.write`)."""
+    from ..rig.usd_io import SPEC_VERSION, _attr_name, _find_skeleton, _open_stage
+
+    UsdGeom = _pxr()[5]
+    stage = _open_stage(Path(rig_file))
+    skel = _find_skeleton(stage)
+    if skel is None:
+        return False
+    version = skel.GetPrim().GetAttribute(_attr_name("specVersion"))
+    return (abs(float(UsdGeom.GetStageMetersPerUnit(stage)) - 1.0) <= 1e-12
+            and str(UsdGeom.GetStageUpAxis(stage)) == "Z"
+            and bool(version) and version.Get() == SPEC_VERSION
+            and len(skel.GetJointsAttr().Get() or []) == rig.n_joints)
+
+
 def _rig_skeleton_info(rig: Rig, rig_file: Path):
     """(root prim name, skeleton path, joint tokens, rig joint index per skeleton joint) read
     from the rig file."""

@@ -35,7 +35,7 @@ import numpy as np
 
 from ..errors import InputError
 from .hand_model import HandMapping, HandModel, hand_model
-from .model import Dof, Rig, free_root
+from .model import ROOT_DOF_NAMES, Dof, Rig, with_free_root
 
 #: role -> {dof: (lower, upper) in degrees about the anatomical zero}; see the module docstring.
 ANATOMICAL_LIMITS_DEG = {
@@ -49,7 +49,6 @@ ANATOMICAL_LIMITS_DEG = {
     "metacarpal": {"flex": (-5.0, 5.0)},
 }
 
-ROOT_DOF_NAMES = ["root_tx", "root_ty", "root_tz", "root_rx", "root_ry", "root_rz"]
 
 
 def joint_roles(model: HandModel) -> dict[int, tuple[str, int]]:
@@ -72,17 +71,16 @@ def joint_roles(model: HandModel) -> dict[int, tuple[str, int]]:
 
 def infer_dofs(rig: Rig, model: HandModel | None = None, *, mapping: HandMapping | None = None) -> Rig:
     """A copy of ``rig`` whose joints without DOFs get DOFs by role (see the module docstring);
-    joints with DOFs keep theirs. The free root is added when the rig has none. DOF names are
+    joints with DOFs keep theirs. The free root is added when the rig has none
+    (:func:`~retarget_core.rig.model.with_free_root`: around the rig's own root joint). DOF names are
     ``<joint>_<flex|abduct>``; rest values are 0 (the bind pose)."""
+    if rig.dof_names[:6] != ROOT_DOF_NAMES:
+        rooted = with_free_root(rig)
+        if rooted.n_joints != rig.n_joints:
+            model = None  # a root joint was inserted: the joint ids moved
+        rig = rooted
     model = model or hand_model(rig, mapping)
     world = rig.kinematics().bind_world
-    if rig.dof_names[:6] != ROOT_DOF_NAMES:
-        if any(d.joint == 0 for d in rig.dofs):
-            raise InputError("the root joint carries DOFs that are not the standard free root "
-                             f"({', '.join(ROOT_DOF_NAMES)}); remove them or name them so", source=rig.name)
-        _, root_dofs = free_root()
-    else:
-        root_dofs = []
     has_dofs = {d.joint for d in rig.dofs}
     added: list[Dof] = []
     for joint, (role, k) in sorted(joint_roles(model).items()):
@@ -109,10 +107,7 @@ def infer_dofs(rig: Rig, model: HandModel | None = None, *, mapping: HandMapping
             added.append(Dof(f"{name}_{dof}", joint, "rotate", _unit(rotation.T @ axis_world),
                              float(lower), float(upper), 0.0))
     existing = list(rig.dofs)
-    if root_dofs:
-        dofs, rest = root_dofs, existing
-    else:
-        dofs, rest = existing[:6], existing[6:]
+    dofs, rest = existing[:6], existing[6:]
     taken = {d.name for d in dofs + rest}
     for d in added:
         if d.name in taken:

@@ -12,9 +12,12 @@ URDF_SUFFIXES = (".urdf",)
 MJCF_SUFFIXES = (".xml", ".mjcf")
 
 
-def load_rig(path, *, wrapper_resolution: float = 0.002, root_body: str | None = None, confine_to=None) -> Rig:
+def load_rig(path, *, wrapper_resolution: float = 0.002, root_body: str | None = None, confine_to=None,
+             mapping=None) -> Rig:
     """Read a rig from USD, or import a robot hand from URDF or MJCF (which also builds its
-    closed wrapper surface at ``wrapper_resolution`` metres).
+    closed wrapper surface at ``wrapper_resolution`` metres). A plain UsdSkel file gets DOFs
+    by role (:func:`~retarget_core.rig.usd_io.read_rig_usd`), settled by ``mapping`` (a
+    :class:`~retarget_core.rig.hand_model.HandMapping`) where the hand model cannot tell.
 
     ``confine_to``: a folder (e.g. an unpacked upload) that every file the rig refers to must
     lie in (URDF/MJCF meshes and includes, USD sublayers, references and payloads); anything
@@ -35,7 +38,7 @@ def load_rig(path, *, wrapper_resolution: float = 0.002, root_body: str | None =
     if suffix in USD_SUFFIXES:
         from .usd_io import read_rig_usd
 
-        return read_rig_usd(path, confine_to=confine_to)
+        return read_rig_usd(path, confine_to=confine_to, mapping=mapping)
     if suffix in URDF_SUFFIXES:
         from .robot_import import load_urdf
 

@@ -33,6 +33,11 @@ DOF_KINDS = ("rotate", "translate")
 
 #: Limits of the free root: translations in metres, rotations in radians.
 ROOT_TRANSLATION_LIMIT = 2.0
+#: A joint matrix is rigid when its rotation part is orthonormal within this (max |R^T R - I|;
+#: float32 matrices from a DCC are off by ~1e-7) and its homogeneous row is (0, 0, 0, 1) within
+#: RIGID_HOMOGENEOUS_TOL; readers re-orthonormalise what passes (:func:`orthonormalized`).
+RIGID_ROTATION_TOL = 1e-5
+RIGID_HOMOGENEOUS_TOL = 1e-6
 ROOT_ROTATION_LIMIT = 2 * np.pi
 
 
@@ -88,6 +93,32 @@ class Dof:
     lower: float
     upper: float
     rest: float = 0.0
+
+
+def rigidity_error(m: np.ndarray) -> str | None:
+    """Why the 4x4 ``m`` is not a rigid transform within the tolerances (None when it is)."""
+    m = np.asarray(m, dtype=np.float64)
+    r = m[:3, :3]
+    ortho = float(np.abs(r.T @ r - np.eye(3)).max())
+    homogeneous = float(np.abs(m[3] - [0, 0, 0, 1]).max())
+    if ortho > RIGID_ROTATION_TOL:
+        scale = np.linalg.norm(r, axis=0)
+        return (f"its rotation part is off orthonormal by {ortho:.3g} (tolerance {RIGID_ROTATION_TOL:g}; "
+                f"column lengths {', '.join(f'{x:.6g}' for x in scale)}: a scale or shear)")
+    if np.linalg.det(r) < 0:
+        return "it mirrors (determinant < 0)"
+    if homogeneous > RIGID_HOMOGENEOUS_TOL:
+        return f"its last row is off (0, 0, 0, 1) by {homogeneous:.3g} (tolerance {RIGID_HOMOGENEOUS_TOL:g})"
+    return None
+
+
+def orthonormalized(m: np.ndarray) -> np.ndarray:
+    """(..., 4, 4): the nearest rigid transforms (rotation by SVD, last row exactly 0 0 0 1)."""
+    m = np.array(m, dtype=np.float64)
+    u, _, vt = np.linalg.svd(m[..., :3, :3])
+    m[..., :3, :3] = u @ vt
+    m[..., 3, :] = (0.0, 0.0, 0.0, 1.0)
+    return m
 
 
 def free_root(translation_limit: float = ROOT_TRANSLATION_LIMIT) -> tuple["Joint", list["Dof"]]:
@@ -295,9 +326,9 @@ class Rig:
             m = np.asarray(j.rest_local, dtype=np.float64)
             if m.shape != (4, 4) or not np.all(np.isfinite(m)):
                 raise InputError("rest transform must be a finite 4x4 matrix", source=source, element=el)
-            r = m[:3, :3]
-            if np.abs(r.T @ r - np.eye(3)).max() > 1e-6 or np.linalg.det(r) < 0 or np.abs(m[3] - [0, 0, 0, 1]).max() > 1e-9:
-                raise InputError("rest transform is not a rigid transform", source=source, element=el)
+            why = rigidity_error(m)
+            if why is not None:
+                raise InputError(f"rest transform is not a rigid transform: {why}", source=source, element=el)
         dof_names = set()
         last_joint = -1
         for d in self.dofs:
@@ -342,3 +373,46 @@ class Rig:
                     source=source,
                     element="surface",
                 )
+
+
+#: A root joint whose rest is this close to the identity (m, and rotation entries) carries the
+#: free root itself (float32 files write the identity with ~1e-7 of noise).
+IDENTITY_ROOT_TOL = 1e-6
+#: The free root's DOF names, in order (:func:`free_root`).
+ROOT_DOF_NAMES = ["root_tx", "root_ty", "root_tz", "root_rx", "root_ry", "root_rz"]
+
+
+def with_free_root(rig: Rig) -> Rig:
+    """``rig`` with the standard free root (:func:`free_root`) at joint 0, wherever the hand sits
+    and whatever its own root joint's rest transform: when the rig already starts with it, the
+    rig itself; when joint 0 has an identity rest (within IDENTITY_ROOT_TOL) and no DOFs, the
+    six DOFs on it; otherwise a
+    new joint ``root`` (``root_1``, ... when taken) at the world origin, parent of the rig's own
+    root joint, which keeps its rest transform and DOFs (skin indices shift by one)."""
+    if rig.dof_names[:6] == ROOT_DOF_NAMES:
+        return rig
+    own_root = rig.joints[0]
+    if not any(d.joint == 0 for d in rig.dofs) and np.abs(own_root.rest_local - np.eye(4)).max() <= IDENTITY_ROOT_TOL:
+        _, dofs = free_root()
+        # within float32 noise of the identity: exactly the identity, as the free root expects
+        joints = [Joint(own_root.name, -1, np.eye(4))] + list(rig.joints[1:])
+        return Rig(name=rig.name, joints=joints, dofs=dofs + list(rig.dofs), surface=rig.surface,
+                   visual=rig.visual, metadata=dict(rig.metadata))
+    taken = set(rig.joint_names)
+    name, k = "root", 0
+    while name in taken:
+        k += 1
+        name = f"root_{k}"
+    joint, dofs = free_root()
+    joints = [Joint(name, -1, joint.rest_local)] + [
+        Joint(j.name, j.parent + 1, np.array(j.rest_local, float)) for j in rig.joints]
+    shifted = [Dof(d.name, d.joint + 1, d.kind, np.array(d.axis, float), d.lower, d.upper, d.rest) for d in rig.dofs]
+
+    def shift(mesh):
+        if mesh is None:
+            return None
+        return SkinnedMesh(vertices=mesh.vertices.copy(), faces=mesh.faces.copy(),
+                           joint_indices=mesh.joint_indices + 1, joint_weights=mesh.joint_weights.copy())
+
+    return Rig(name=rig.name, joints=joints, dofs=dofs + shifted, surface=shift(rig.surface),
+               visual=shift(rig.visual), metadata={**rig.metadata, "free_root_added": name})

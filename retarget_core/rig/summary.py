@@ -54,6 +54,10 @@ def format_rig_info(rig: Rig, source: str = "") -> str:
     s = rig_summary(rig)
     lines = [f"rig {s['name']}" + (f" ({source})" if source else "")]
     lines.append(f"  joints: {s['n_joints']}   DOFs: {s['n_dofs']}")
+    if rig.metadata.get("dof_source"):
+        lines.append(f"  DOFs: {rig.metadata['dof_source']}")
+    if rig.metadata.get("free_root_added"):
+        lines.append(f"  free root: joint {rig.metadata['free_root_added']!r} added above the skeleton's own root")
     for joint in s["joints"]:
         parent = joint["parent"] or "-"
         lines.append(f"  joint {joint['name']} (parent {parent})")

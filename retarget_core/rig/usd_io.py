@@ -45,7 +45,7 @@ import numpy as np
 from ..errors import InputError
 from ..files import atomic_path
 from ..jsonio import to_jsonable
-from .model import DOF_KINDS, Dof, Joint, Rig, SkinnedMesh
+from .model import DOF_KINDS, Dof, Joint, Rig, SkinnedMesh, orthonormalized, rigidity_error
 
 SPEC_VERSION = 1
 NAMESPACE = "handretarget"
@@ -471,6 +471,10 @@ def _get(prim, short: str, *, src: str, required: bool = True):
 
 
 def _read_dofs(prim, n_joints: int, *, src: str):
+    """The DOFs of the ``handretarget:`` spec, or None for a plain UsdSkel skeleton (no spec
+    attribute at all: its DOFs are inferred by role, see :func:`read_rig_usd`)."""
+    if all(_get(prim, short, src=src, required=False) is None for short in ("specVersion", "dofNames")):
+        return None
     version = _get(prim, "specVersion", src=src)
     if int(version) != SPEC_VERSION:
         raise InputError(
@@ -635,9 +639,18 @@ def _read_mesh(prim, skel_paths: list[str], *, src: str, element: str):
     return points, faces, ji, jw
 
 
-def read_rig_usd(path, *, confine_to=None) -> Rig:
-    """Read a rig written by :func:`write_rig_usd` (or any UsdSkel file carrying the
-    ``handretarget:`` DOF spec), converting to metres and Z-up; validated before returning.
+def read_rig_usd(path, *, confine_to=None, mapping=None) -> Rig:
+    """Read a skinned hand from USD: a rig written by :func:`write_rig_usd` (its
+    ``handretarget:`` DOF spec), or a plain UsdSkel file as a DCC writes it (SkelRoot >
+    Skeleton with joints, restTransforms, bindTransforms; a Mesh bound with jointIndices,
+    jointWeights, geomBindTransform), whose DOFs are then inferred by role from the hand model
+    (:func:`~retarget_core.rig.dof_roles.infer_dofs`, settled by ``mapping``, a
+    :class:`~retarget_core.rig.hand_model.HandMapping`, when the hand model cannot tell) with a
+    free root added around the skeleton's own root joint. The Skeleton prim's world transform
+    (its ancestors' xformOps included; uniform scale allowed), metersPerUnit and upAxis Y or Z
+    are applied: the rig is in metres, Z-up, world. Joint matrices must be rigid within
+    |R^T R - I| <= 1e-5 and 1e-6 on the last row (float32 files pass) and are re-orthonormalised.
+    Validated before returning.
 
     ``confine_to``: a folder every composed layer (sublayers, references, payloads, value
     clips) must lie in, or the file itself (then it may compose no other layer); checked on
@@ -682,7 +695,18 @@ def read_rig_usd(path, *, confine_to=None) -> Rig:
         if bind_attr.HasAuthoredValue()
         else None
     )
+    for label, mats, attr in (("rest", rest_local, "restTransforms"), ("bind", bind_usd, "bindTransforms")):
+        for i in range(n if mats is not None else 0):
+            why = rigidity_error(mats[i])
+            if why is not None:
+                raise InputError(f"joint {paths[i]!r}: the {label} transform is not rigid: {why}",
+                                 source=src, element=f"{skel_el}.{attr}")
+    rest_local = orthonormalized(rest_local)  # float32 files (Blender) carry ~1e-7 of noise
+    bind_usd = None if bind_usd is None else orthonormalized(bind_usd)
     dofs = _read_dofs(prim, n, src=src)
+    plain = dofs is None
+    dofs = dofs or []
+    placement = _prim_placement(prim, src=src)
 
     surface_prim, visual_prim, bound = _find_meshes(stage, skel)
     if surface_prim is None:
@@ -711,6 +735,20 @@ def read_rig_usd(path, *, confine_to=None) -> Rig:
         bind_usd = bind_usd[order]
     for key, (pts, faces, ji, jw) in meshes.items():
         meshes[key] = (pts, faces, new_index[ji] if ji.size else ji, jw)
+
+    # The Skeleton prim's own world transform (its xformOps and every ancestor's: a SkelRoot
+    # placed in a scene) carries the skeleton and, by UsdSkel's rules, the skinned points; the
+    # bound Mesh's own transform does not take part in skinning.
+    s_uniform, placed = placement
+    if s_uniform != 1.0 or not np.allclose(placed, np.eye(4), atol=1e-12):
+        root = parents_new.index(-1)
+        joints_rest[:, :3, 3] *= s_uniform
+        joints_rest[root] = placed @ joints_rest[root]
+        if bind_usd is not None:
+            bind_usd[:, :3, 3] *= s_uniform
+            bind_usd = placed @ bind_usd
+        for key, (pts, faces, ji, jw) in meshes.items():
+            meshes[key] = ((pts * s_uniform) @ placed[:3, :3].T + placed[:3, 3], faces, ji, jw)
 
     # Units: stage units -> metres.
     scale = float(UsdGeom.GetStageMetersPerUnit(stage))
@@ -778,7 +816,39 @@ def read_rig_usd(path, *, confine_to=None) -> Rig:
                 mesh.vertices = moved
             rig.__dict__.pop("_kinematics", None)
             rig.validate(source=src)
+    if plain:
+        # A skeleton from a DCC carries no DOFs: the free root around its own root joint and
+        # DOFs by role from the hand model (dof_roles), which says what it cannot tell.
+        from .dof_roles import infer_dofs
+
+        try:
+            rig = infer_dofs(rig, mapping=mapping)
+        except InputError as err:
+            raise InputError(f"{src}: no handretarget DOF spec, and DOFs by role could not be inferred: {err}") from err
+        rig.metadata["dof_source"] = ("inferred by role (plain UsdSkel, no handretarget DOF spec); "
+                                      "`handretarget rig import` writes them out for editing")
     return rig
+
+
+def _prim_placement(prim, *, src: str):
+    """(uniform scale s, rigid (4, 4)) with the prim's local-to-world transform = rigid @ scale(s),
+    column convention, stage units. A non-uniform scale, shear or mirror is an InputError."""
+    Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt = _pxr()
+    world = np.array(UsdGeom.Imageable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default()),
+                     dtype=np.float64).T
+    linear = world[:3, :3]
+    det = float(np.linalg.det(linear))
+    if not np.all(np.isfinite(world)) or det <= 0:
+        raise InputError(f"the world transform of {prim.GetPath()} is singular or mirrors (determinant {det:.3g})",
+                         source=src, element=str(prim.GetPath()))
+    s = det ** (1.0 / 3.0)
+    rigid = world.copy()
+    rigid[:3, :3] = linear / s
+    why = rigidity_error(rigid)
+    if why is not None:
+        raise InputError(f"the world transform of {prim.GetPath()} (its own and its ancestors' xformOps) is not "
+                         f"a rotation, translation and uniform scale: {why}", source=src, element=str(prim.GetPath()))
+    return s, orthonormalized(rigid)
 
 
 # ---- compliance ----------------------------------------------------------------------------

@@ -1,0 +1,253 @@
+"""Plain UsdSkel hands, as another tool's exporter writes them (tests/plain_usd.py, pxr alone):
+no handretarget DOF spec, centimetres and Y-up, a transform on the SkelRoot (and one on the
+Mesh, which UsdSkel ignores), a geomBindTransform, float32 matrices, the hand placed anywhere.
+Each reads as the same world hand with DOFs inferred by role, and goes through rig info,
+annotate propose and retarget with no edit, to within 0.1 mm of the core's own hand with the
+same inferred DOFs."""
+
+import json
+
+import numpy as np
+import pytest
+
+from foreign_hands import foreign_demo, strip_dofs
+from plain_usd import Z_UP_TO_Y_UP, skinned_world_points, write_plain_usdskel
+from retarget_core.cli import main
+from retarget_core.clip.demo import make_demo_clip, source_rig
+from retarget_core.errors import InputError
+from retarget_core.rig.dof_limits import apply_limits, limits_toml
+from retarget_core.rig.dof_roles import infer_dofs
+from retarget_core.rig.io import load_rig
+from retarget_core.rig.usd_io import check_usd_compliance, read_rig_usd
+
+RES = 0.004
+SOURCE = f"demo:source_human@{RES}"
+
+
+def _rz(deg, translation=(0.0, 0.0, 0.0)):
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    m = np.eye(4)
+    m[:2, :2] = [[c, -s], [s, c]]
+    m[:3, 3] = translation
+    return m
+
+
+def _rx(deg):
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    m = np.eye(4)
+    m[1:3, 1:3] = [[c, -s], [s, c]]
+    return m
+
+
+#: name -> writer options (everything composes back to the same world hand)
+VARIANTS = {
+    "plain": {},
+    "cm-yup-placed": dict(meters_per_unit=0.01, up_axis="Y", skel_root_transform=_rz(35, (12.0, -40.0, 7.0)) @ _rx(20),
+                          mesh_transform=_rz(10, (3.0, 0.0, 0.0)), geom_bind=_rz(-20, (0.5, 0.2, 0.0)), float32=True),
+    "scaled-root": dict(skel_root_transform=_rz(-60, (0.3, 0.1, -0.2)), skel_root_scale=2.5),
+}
+
+
+@pytest.fixture(scope="module")
+def hand():
+    rig, truth = foreign_demo("human_alt", RES)
+    return rig
+
+
+def _arrays(rig, world=None):
+    bind = rig.kinematics().bind_world
+    vertices = rig.surface.vertices
+    if world is not None:
+        bind = np.einsum("ab,jbc->jac", world, bind)
+        vertices = vertices @ world[:3, :3].T + world[:3, 3]
+    return dict(joint_names=rig.joint_names, parents=[j.parent for j in rig.joints], bind_world=bind,
+                vertices=vertices, faces=rig.surface.faces, joint_indices=rig.surface.joint_indices,
+                joint_weights=rig.surface.joint_weights)
+
+
+@pytest.fixture(scope="module")
+def files(hand, tmp_path_factory):
+    folder = tmp_path_factory.mktemp("plain_usd")
+    return {name: write_plain_usdskel(folder / f"{name}.usda", **_arrays(hand), **options)
+            for name, options in VARIANTS.items()}
+
+
+@pytest.fixture(scope="module")
+def core(hand):
+    """The same hand, stripped of its DOF spec in memory, with DOFs by role from the core."""
+    from foreign_hands import truth_of
+
+    stripped, _ = strip_dofs(hand, truth_of(hand))
+    return infer_dofs(stripped)
+
+
+def test_the_written_files_are_plain_compliant_usdskel(files):
+    for name, path in files.items():
+        assert check_usd_compliance(path) == [], name
+        assert "handretarget" not in path.read_text(), name
+
+
+@pytest.mark.parametrize("variant", sorted(VARIANTS))
+def test_a_plain_file_reads_as_the_same_world_hand_with_dofs_by_role(files, core, variant):
+    rig = read_rig_usd(files[variant])
+    assert rig.n_dofs == core.n_dofs and rig.dof_names == core.dof_names
+    assert rig.joint_names == core.joint_names
+    assert "inferred by role" in rig.metadata["dof_source"]
+    # float32 files round the centimetre positions to ~1e-7 of their size
+    assert np.abs(rig.surface.vertices - core.surface.vertices).max() <= 1e-5
+    assert np.abs(rig.kinematics().bind_world - core.kinematics().bind_world).max() <= 1e-5
+    for a, b in zip(rig.dofs, core.dofs):
+        assert np.allclose(a.axis, b.axis, atol=1e-4), a.name
+        assert np.isclose(a.lower, b.lower, atol=1e-3) and np.isclose(a.upper, b.upper, atol=1e-3), a.name
+
+
+@pytest.mark.parametrize("variant", sorted(VARIANTS))
+def test_usd_skinning_of_the_file_agrees_with_the_core(files, hand, variant):
+    """pxr's own skinning query (no project code) at the bind pose, converted by the file's
+    metersPerUnit and upAxis, against the core's surface."""
+    options = VARIANTS[variant]
+    stage_points = skinned_world_points(files[variant])
+    mpu = options.get("meters_per_unit", 1.0)
+    axis = Z_UP_TO_Y_UP[:3, :3] if options.get("up_axis") == "Y" else np.eye(3)
+    world = (stage_points * mpu) @ axis  # stage -> Z-up world (axis is a rotation: inverse = transpose)
+    assert np.abs(world - read_rig_usd(files[variant]).surface.vertices).max() <= 1e-5
+
+
+def test_a_hand_placed_anywhere_gets_the_free_root_around_its_own_root(hand, core, tmp_path):
+    placed = _rz(75, (0.5, -0.3, 0.9)) @ _rx(-30)
+    path = write_plain_usdskel(tmp_path / "anywhere.usda", **_arrays(hand, world=placed))
+    rig = read_rig_usd(path)
+    # the skeleton's own root sits 1.1 m away, turned: a new root joint carries the free root
+    assert rig.joint_names == ["root_1"] + core.joint_names
+    assert rig.metadata["free_root_added"] == "root_1"
+    assert rig.n_dofs == core.n_dofs and rig.dof_names[:6] == core.dof_names[:6]
+    assert np.allclose(rig.surface.vertices, core.surface.vertices @ placed[:3, :3].T + placed[:3, 3], atol=1e-6)
+    # at the rest pose the rig is where the file put it; the free root moves all of it rigidly
+    kin = rig.kinematics()
+    assert np.allclose(kin.skin(rig.rest_pose), rig.surface.vertices, atol=1e-9)
+    q = rig.rest_pose.copy()
+    q[:3] = (0.1, 0.0, -0.2)
+    assert np.allclose(kin.skin(q), rig.surface.vertices + (0.1, 0.0, -0.2), atol=1e-9)
+
+
+def test_float32_noise_in_joint_matrices_is_accepted_and_cleaned(hand, tmp_path):
+    """What Blender writes: a homogeneous entry of 0.99999994 and rotations off orthonormal by
+    a few 1e-7."""
+    from pxr import Gf, Usd, UsdSkel
+
+    path = write_plain_usdskel(tmp_path / "noisy.usda", **_arrays(hand))
+    stage = Usd.Stage.Open(str(path))
+    skel = UsdSkel.Skeleton(stage.GetPrimAtPath("/Hand/Skeleton"))
+    rest = list(skel.GetRestTransformsAttr().Get())
+    m = Gf.Matrix4d(rest[5])
+    m[3][3] = 0.99999994
+    m[0][0] = m[0][0] * (1 + 3e-7)
+    rest[5] = m
+    skel.GetRestTransformsAttr().Set(rest)
+    stage.GetRootLayer().Save()
+    rig = read_rig_usd(path)
+    local = rig.joints[5].rest_local
+    assert np.array_equal(local[3], [0.0, 0.0, 0.0, 1.0])
+    assert np.abs(local[:3, :3].T @ local[:3, :3] - np.eye(3)).max() < 1e-12
+
+
+def test_bad_plain_files_are_refused_naming_prim_joint_and_number(hand, tmp_path):
+    from pxr import Gf, Usd, UsdSkel
+
+    path = write_plain_usdskel(tmp_path / "sheared.usda", **_arrays(hand))
+    stage = Usd.Stage.Open(str(path))
+    skel = UsdSkel.Skeleton(stage.GetPrimAtPath("/Hand/Skeleton"))
+    rest = list(skel.GetRestTransformsAttr().Get())
+    m = Gf.Matrix4d(rest[3])
+    m.SetRow(0, m.GetRow(0) * 1.01)  # a 1 % scale in one joint's matrix
+    rest[3] = m
+    skel.GetRestTransformsAttr().Set(rest)
+    stage.GetRootLayer().Save()
+    with pytest.raises(InputError, match=r"thumb2.*not rigid.*off orthonormal by 0\.0201"):
+        read_rig_usd(path)
+
+    path = write_plain_usdskel(tmp_path / "squashed.usda", **_arrays(hand))
+    stage = Usd.Stage.Open(str(path))
+    from pxr import UsdGeom
+
+    UsdGeom.Xformable(stage.GetPrimAtPath("/Hand")).AddScaleOp().Set(Gf.Vec3f(1.0, 1.0, 0.5))
+    stage.GetRootLayer().Save()
+    with pytest.raises(InputError, match=r"/Hand/Skeleton.*uniform scale"):
+        read_rig_usd(path)
+
+
+def test_limits_toml_round_trip_and_its_errors(core, tmp_path):
+    text = limits_toml(core)
+    assert "[index1]" in text and "root_tx" not in text
+    edited = tmp_path / "limits.toml"
+    edited.write_text("[index1]\nindex1_flex = [-10.0, 60.0]\n")
+    rig = apply_limits(core, edited)
+    d = rig.dofs[rig.dof_index("index1_flex")]
+    assert np.degrees([d.lower, d.upper]) == pytest.approx([-10.0, 60.0])
+    assert core.dofs[core.dof_index("index1_flex")].upper != d.upper  # the original is untouched
+    for body, message in (("[index1]\nindex9_flex = [0, 1]\n", "no DOF 'index9_flex'"),
+                          ("[nope]\n", "no joint 'nope'"),
+                          ("[index1]\nindex1_flex = [60, 10]\n", "not below"),
+                          ("[index1]\nindex1_flex = [10, 60]\n", "leaves out the DOF's rest value"),
+                          ("[index1\n", "not a valid TOML")):
+        edited.write_text(body)
+        with pytest.raises(InputError, match=message):
+            apply_limits(core, edited)
+
+
+# ---- the whole way: info, propose, retarget with no edit ----------------------------------------
+@pytest.fixture(scope="module")
+def clip_file(tmp_path_factory):
+    clip = make_demo_clip("bottle_pick_place", time_scale=0.05, resolution=RES, rig=source_rig(RES))  # 46 frames
+    path = tmp_path_factory.mktemp("plain_clip") / "clip.npz"
+    clip.save(path)
+    return path
+
+
+def _through_the_commands(path, clip_file, out, capsys, *, plain=True):
+    assert main(["rig", "info", str(path)]) == 0
+    info = capsys.readouterr().out
+    assert ("inferred by role" in info) == plain
+    annotations = out / "annotations.json"
+    assert main(["annotate", "propose", "--source", SOURCE, "--target", str(path), "--out", str(annotations)]) == 0
+    assert main(["retarget", "--clip", str(clip_file), "--rig", str(path), "--annotations", str(annotations),
+                 "--source-rig", SOURCE, "--out", str(out / "result"), "--workers", "1"]) == 0
+    capsys.readouterr()
+    return json.loads((out / "result" / "result.json").read_text())
+
+
+def test_plain_files_retarget_like_the_core_hand(files, core, clip_file, tmp_path, capsys):
+    results = {}
+    for name in ("plain", "cm-yup-placed"):
+        out = tmp_path / name
+        out.mkdir()
+        results[name] = _through_the_commands(files[name], clip_file, out, capsys)
+    core_file = tmp_path / "core.usda"
+    from retarget_core.rig.io import save_rig
+
+    save_rig(core, core_file)
+    (tmp_path / "core").mkdir()
+    results["core"] = _through_the_commands(core_file, clip_file, tmp_path / "core", capsys, plain=False)
+    medians = {k: r["summary"]["contact_distance_median_mm"] for k, r in results.items()}
+    assert all(np.isfinite(v) for v in medians.values()), medians
+    for name in ("plain", "cm-yup-placed"):
+        assert len(results[name]["dof_names"]) == len(results["core"]["dof_names"])
+        assert abs(medians[name] - medians["core"]) <= 0.1, medians
+
+
+def test_rig_import_writes_the_inferred_spec_and_its_limits(files, tmp_path, capsys):
+    out = tmp_path / "imported.usda"
+    assert main(["rig", "import", str(files["cm-yup-placed"]), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "inferred by role" in printed
+    limits = tmp_path / "imported.limits.toml"
+    assert limits.is_file() and "[index1]" in limits.read_text()
+    again = load_rig(out)  # a rig file with its DOF spec now: read as written, nothing inferred again
+    plain = read_rig_usd(files["cm-yup-placed"])
+    assert again.dof_names == plain.dof_names
+    assert np.abs(again.surface.vertices - plain.surface.vertices).max() <= 1e-6  # float32 points
+    limits.write_text("[index1]\nindex1_flex = [-10.0, 60.0]\n")
+    edited = tmp_path / "edited.usda"
+    assert main(["rig", "import", str(files["cm-yup-placed"]), "--limits", str(limits), "--out", str(edited)]) == 0
+    d = load_rig(edited).dofs[plain.dof_index("index1_flex")]
+    assert np.degrees([d.lower, d.upper]) == pytest.approx([-10.0, 60.0])
