@@ -151,6 +151,18 @@ def test_float32_noise_in_joint_matrices_is_accepted_and_cleaned(hand, tmp_path)
     assert np.abs(local[:3, :3].T @ local[:3, :3] - np.eye(3)).max() < 1e-12
 
 
+def test_a_skeleton_without_rest_transforms_rests_at_its_bind_pose(hand, core, tmp_path):
+    from pxr import Usd
+
+    path = write_plain_usdskel(tmp_path / "bind_only.usda", **_arrays(hand), meters_per_unit=0.01, up_axis="Y")
+    stage = Usd.Stage.Open(str(path))
+    stage.GetPrimAtPath("/Hand/Skeleton").RemoveProperty("restTransforms")
+    stage.GetRootLayer().Save()
+    assert "restTransforms" not in path.read_text()
+    rig = read_rig_usd(path)
+    assert np.abs(rig.kinematics().bind_world - core.kinematics().bind_world).max() <= 1e-6
+
+
 def test_bad_plain_files_are_refused_naming_prim_joint_and_number(hand, tmp_path):
     from pxr import Gf, Usd, UsdSkel
 

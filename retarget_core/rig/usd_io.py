@@ -688,13 +688,19 @@ def read_rig_usd(path, *, confine_to=None, mapping=None) -> Rig:
         raise InputError(
             f"{len(names)} joint names for {n} joints", source=src, element=f"{skel_el}.{_attr_name('jointNames')}"
         )
-    rest_local = _matrices(skel.GetRestTransformsAttr().Get(), n, src=src, element=f"{skel_el}.restTransforms")
     bind_attr = skel.GetBindTransformsAttr()
     bind_usd = (
         _matrices(bind_attr.Get(), n, src=src, element=f"{skel_el}.bindTransforms")
         if bind_attr.HasAuthoredValue()
         else None
     )
+    rest_attr = skel.GetRestTransformsAttr()
+    if rest_attr.HasAuthoredValue() or bind_usd is None:
+        rest_local = _matrices(rest_attr.Get(), n, src=src, element=f"{skel_el}.restTransforms")
+    else:
+        # no rest pose authored: UsdSkel falls back to the bind pose (joint-local from skel space)
+        rest_local = np.array([bind_usd[j] if parents[j] < 0 else np.linalg.inv(bind_usd[parents[j]]) @ bind_usd[j]
+                               for j in range(n)])
     for label, mats, attr in (("rest", rest_local, "restTransforms"), ("bind", bind_usd, "bindTransforms")):
         for i in range(n if mats is not None else 0):
             why = rigidity_error(mats[i])
