@@ -105,9 +105,10 @@ def write_plain_usdskel(path, *, joint_names, parents, bind_world, vertices, fac
     return path
 
 
-def skinned_world_points(path, joint_world_local=None) -> np.ndarray:
-    """(V, 3) the file's mesh skinned by UsdSkel itself (pxr's skinning query) at its rest pose,
-    in the stage's world space and units (no project code)."""
+def skinned_world_points(path, time=None) -> np.ndarray:
+    """(V, 3) the file's mesh skinned by UsdSkel itself (pxr's skinning query) at time code
+    ``time`` (None: the default time, the rest pose without an animation), in the stage's world
+    space and units (no project code)."""
     stage = Usd.Stage.Open(str(path))
     cache = UsdSkel.Cache()
     root = next(UsdSkel.Root(p) for p in stage.Traverse() if p.IsA(UsdSkel.Root))
@@ -117,7 +118,8 @@ def skinned_world_points(path, joint_world_local=None) -> np.ndarray:
     query = binding.GetSkinningTargets()[0]
     mesh = UsdGeom.Mesh(query.GetPrim())
     points = mesh.GetPointsAttr().Get()
-    xforms = skel_query.ComputeSkinningTransforms(Usd.TimeCode.Default())
-    query.ComputeSkinnedPoints(xforms, points, Usd.TimeCode.Default())
-    skel_to_world = UsdGeom.Imageable(binding.GetSkeleton().GetPrim()).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+    code = Usd.TimeCode.Default() if time is None else Usd.TimeCode(float(time))
+    xforms = skel_query.ComputeSkinningTransforms(code)
+    query.ComputeSkinnedPoints(xforms, points, code)
+    skel_to_world = UsdGeom.Imageable(binding.GetSkeleton().GetPrim()).ComputeLocalToWorldTransform(code)
     return np.array([skel_to_world.Transform(Gf.Vec3d(*p)) for p in points], dtype=np.float64)

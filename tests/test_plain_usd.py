@@ -5,7 +5,10 @@ Each reads as the same world hand with DOFs inferred by role, and goes through r
 annotate propose and retarget with no edit, to within 0.1 mm of the core's own hand with the
 same inferred DOFs."""
 
+import contextlib
+import io
 import json
+import os
 
 import numpy as np
 import pytest
@@ -163,6 +166,30 @@ def test_a_skeleton_without_rest_transforms_rests_at_its_bind_pose(hand, core, t
     assert np.abs(rig.kinematics().bind_world - core.kinematics().bind_world).max() <= 1e-6
 
 
+def test_a_layer_over_a_hand_placed_anywhere_moves_its_own_root_joint(hand, tmp_path):
+    """The free root the reader added is not in the user's skeleton: its motion lands on the
+    skeleton's own root joint, and USD's skinning of the composed stage follows the core."""
+    from retarget_core.export import write_animation_usd
+    from retarget_core.fit.splines import fit_trajectory
+
+    placed = _rz(75, (0.5, -0.3, 0.9)) @ _rx(-30)
+    path = write_plain_usdskel(tmp_path / "anywhere.usda", **_arrays(hand, world=placed), meters_per_unit=0.01,
+                               up_axis="Y", skel_root_transform=_rz(-30, (4.0, 5.0, 6.0)))
+    rig = read_rig_usd(path)
+    assert rig.metadata["free_root_added"] == "root_1"
+    rng = np.random.default_rng(4)
+    times = np.arange(12) / 24.0
+    q = rig.rest_pose + np.clip(rng.normal(scale=0.2, size=(12, rig.n_dofs)), -0.3, 0.3)
+    q = np.clip(q, rig.lower, rig.upper)
+    curves = fit_trajectory(times, q, 6, optimize_knots=False)
+    layer = tmp_path / "animation.usda"
+    write_animation_usd(layer, rig=rig, rig_file=str(path), dof_curves=curves, fps=24.0, n_frames=12)
+    for frame in (0, 5, 11):
+        q_f = np.array([float(c(frame / 24.0)) for c in curves])
+        usd_points = skinned_world_points(layer, time=frame) * 0.01 @ Z_UP_TO_Y_UP[:3, :3]
+        assert np.abs(usd_points - rig.kinematics().skin(q_f)).max() <= 1e-5, frame
+
+
 def test_bad_plain_files_are_refused_naming_prim_joint_and_number(hand, tmp_path):
     from pxr import Gf, Usd, UsdSkel
 
@@ -216,35 +243,65 @@ def clip_file(tmp_path_factory):
     return path
 
 
-def _through_the_commands(path, clip_file, out, capsys, *, plain=True):
-    assert main(["rig", "info", str(path)]) == 0
-    info = capsys.readouterr().out
-    assert ("inferred by role" in info) == plain
-    annotations = out / "annotations.json"
-    assert main(["annotate", "propose", "--source", SOURCE, "--target", str(path), "--out", str(annotations)]) == 0
-    assert main(["retarget", "--clip", str(clip_file), "--rig", str(path), "--annotations", str(annotations),
-                 "--source-rig", SOURCE, "--out", str(out / "result"), "--workers", "1"]) == 0
-    capsys.readouterr()
+def _through_the_commands(path, clip_file, out, *, plain=True):
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        assert main(["rig", "info", str(path)]) == 0
+        assert ("inferred by role" in printed.getvalue()) == plain
+        annotations = out / "annotations.json"
+        assert main(["annotate", "propose", "--source", SOURCE, "--target", str(path), "--out", str(annotations)]) == 0
+        assert main(["retarget", "--clip", str(clip_file), "--rig", str(path), "--annotations", str(annotations),
+                     "--source-rig", SOURCE, "--out", str(out / "result"), "--workers", "1"]) == 0
     return json.loads((out / "result" / "result.json").read_text())
 
 
-def test_plain_files_retarget_like_the_core_hand(files, core, clip_file, tmp_path, capsys):
-    results = {}
-    for name in ("plain", "cm-yup-placed"):
-        out = tmp_path / name
-        out.mkdir()
-        results[name] = _through_the_commands(files[name], clip_file, out, capsys)
-    core_file = tmp_path / "core.usda"
+@pytest.fixture(scope="module")
+def retargeted(files, core, clip_file, tmp_path_factory):
+    """name -> (result.json, output folder) for the plain file, the cm / Y-up / placed one and
+    the core's own hand, each through info, propose and retarget on the command line."""
     from retarget_core.rig.io import save_rig
 
+    folder = tmp_path_factory.mktemp("plain_runs")
+    core_file = folder / "core.usda"
     save_rig(core, core_file)
-    (tmp_path / "core").mkdir()
-    results["core"] = _through_the_commands(core_file, clip_file, tmp_path / "core", capsys, plain=False)
-    medians = {k: r["summary"]["contact_distance_median_mm"] for k, r in results.items()}
+    out = {}
+    for name, path, plain in (("plain", files["plain"], True), ("cm-yup-placed", files["cm-yup-placed"], True),
+                              ("core", core_file, False)):
+        (folder / name).mkdir()
+        out[name] = (_through_the_commands(path, clip_file, folder / name, plain=plain),
+                     folder / name / "result")
+    return out
+
+
+def test_plain_files_retarget_like_the_core_hand(retargeted):
+    medians = {k: r["summary"]["contact_distance_median_mm"] for k, (r, _) in retargeted.items()}
     assert all(np.isfinite(v) for v in medians.values()), medians
     for name in ("plain", "cm-yup-placed"):
-        assert len(results[name]["dof_names"]) == len(results["core"]["dof_names"])
+        assert len(retargeted[name][0]["dof_names"]) == len(retargeted["core"][0]["dof_names"])
         assert abs(medians[name] - medians["core"]) <= 0.1, medians
+
+
+def test_the_result_layer_plays_on_the_users_own_file(files, retargeted):
+    """The animation layer sublayers the user's cm / Y-up file as it is; USD's own skinning of
+    the composed stage (pxr, no project code) gives the core's posed surface to 1e-5 m."""
+    from pxr import Usd
+
+    doc, out = retargeted["cm-yup-placed"]
+    layer = out / "animation.usda"
+    stage = Usd.Stage.Open(str(layer))
+    assert [str(p) for p in stage.GetRootLayer().subLayerPaths] == [
+        os.path.relpath(files["cm-yup-placed"], out).replace(os.sep, "/")]
+    assert not (out / "rig.usda").exists()
+    rig = read_rig_usd(files["cm-yup-placed"])
+    from retarget_core.export import read_dof_bsplines
+
+    curves = read_dof_bsplines(layer)
+    fps = doc["fps"]
+    for frame in (0, 17, len(doc["times"]) - 1):
+        q = np.array([float(curves[name](frame / fps)) for name in rig.dof_names])
+        core_points = rig.kinematics().skin(q)
+        usd_points = skinned_world_points(layer, time=frame) * 0.01 @ Z_UP_TO_Y_UP[:3, :3]
+        assert np.abs(usd_points - core_points).max() <= 1e-5, frame
 
 
 def test_rig_import_writes_the_inferred_spec_and_its_limits(files, tmp_path, capsys):

@@ -1,7 +1,8 @@
 """The retargeting result as a USD layer (and as JSON for robot users).
 
-Layout written by :func:`write_animation_usd` (stage metadata ``metersPerUnit = 1``,
-``upAxis = "Z"``, ``timeCodesPerSecond = framesPerSecond = fps``, ``startTimeCode = 0``,
+Layout written by :func:`write_animation_usd` (stage metadata ``metersPerUnit`` and ``upAxis``
+of the rig file it composes over, 1 and Z for the project's own rig files;
+``timeCodesPerSecond = framesPerSecond = fps``, ``startTimeCode = 0``,
 ``endTimeCode = n_frames - 1``; time code = frame number, seconds = code / fps)::
 
     subLayers = [@<rig file, relative to the output folder>@]   (when ``rig_file`` is given;
@@ -11,12 +12,16 @@ Layout written by :func:`write_animation_usd` (stage metadata ``metersPerUnit = 
       Skeleton                 over: SkelBindingAPI, skel:animationSource = </<RigRoot>/Animation>
       Animation                SkelAnimation: joints = the Skeleton's joint tokens; translations
                                (float3[]), rotations (quatf[]), scales (half3[]) of the LOCAL
-                               joint transforms, time-sampled at every frame
+                               joint transforms in that file's skeleton space (its units, up
+                               axis and the Skeleton prim's placement), time-sampled at every
+                               frame; a free root the reader added to a plain UsdSkel file is
+                               not in its skeleton: its motion lands on the skeleton's root joint
       DofCurves                Scope: one ``double dof:<name>`` attribute per DOF carrying a
                                native Ts spline equal to the fitted cubic B-spline; customData
                                ``handretarget = {dofName, knots, coefficients, degree,
                                timeUnit = "seconds", fps, extrapolation}``
-    /Object                    Xform, xformOp:transform time-sampled per frame (when given)
+    /Object                    Xform, xformOp:transform time-sampled per frame (when given), in
+                               the file's units and up axis
       Mesh                     the object's mesh in its own frame
 
 B-spline -> Ts spline: a Bezier knot at every breakpoint b (time code b * fps) with the
@@ -116,41 +121,67 @@ def local_joint_transforms(rig: Rig, q: np.ndarray) -> np.ndarray:
 
 
 def layers_over(rig: Rig, rig_file) -> bool:
-    """Whether an animation layer for ``rig`` can compose over ``rig_file`` as it is: a rig file
-    with the handretarget DOF spec, in metres and Z-up, with the rig's joints. A plain UsdSkel
-    file (DOFs inferred, maybe a free root added) or one in other units or axes gets a rig.usda
-    written beside the result instead (:meth:`retarget_core.result.RetargetResult.write`)."""
-    from ..rig.usd_io import SPEC_VERSION, _attr_name, _find_skeleton, _open_stage
-
-    UsdGeom = _pxr()[5]
-    stage = _open_stage(Path(rig_file))
-    skel = _find_skeleton(stage)
-    if skel is None:
+    """Whether an animation layer for ``rig`` can compose over ``rig_file`` as it is: a USD
+    file whose Skeleton has the rig's joints (by name; a free root the reader added may be
+    missing from it), in any units, up axis and placement (:func:`_skeleton_target`)."""
+    try:
+        _skeleton_target(rig, Path(rig_file))
+    except InputError:
         return False
-    version = skel.GetPrim().GetAttribute(_attr_name("specVersion"))
-    return (abs(float(UsdGeom.GetStageMetersPerUnit(stage)) - 1.0) <= 1e-12
-            and str(UsdGeom.GetStageUpAxis(stage)) == "Z"
-            and bool(version) and version.Get() == SPEC_VERSION
-            and len(skel.GetJointsAttr().Get() or []) == rig.n_joints)
+    return True
 
 
-def _rig_skeleton_info(rig: Rig, rig_file: Path):
-    """(root prim name, skeleton path, joint tokens, rig joint index per skeleton joint) read
-    from the rig file."""
-    from ..rig.usd_io import _find_skeleton, _open_stage
+class _SkeletonTarget:
+    """The Skeleton of a rig file an animation layer composes over, and how the core's world
+    (metres, Z-up) maps into its space: root prim name, skeleton path, joint tokens (T,),
+    ``order`` (T,) the rig joint of each token, ``parents`` (T,) token tree, and the file's
+    metersPerUnit, upAxis and the Skeleton prim's placement (uniform scale, rigid)."""
+
+    def __init__(self, root_name, skel_path, tokens, order, parents, meters_per_unit, up_axis, scale, placed):
+        self.root_name, self.skel_path, self.tokens = root_name, skel_path, tokens
+        self.order, self.parents = order, parents
+        self.meters_per_unit, self.up_axis = meters_per_unit, up_axis
+        from ..rig.usd_io import Y_UP_TO_Z_UP
+
+        # world (m, Z-up) -> stage world (units, up axis): rotation, then units
+        self.to_stage = (Y_UP_TO_Z_UP.T if up_axis == "Y" else np.eye(4)).copy()
+        self.to_stage_scale = 1.0 / meters_per_unit
+        self.inv_placed = np.linalg.inv(placed)
+        self.skel_scale = scale
+
+    def stage_transform(self) -> np.ndarray:
+        """(4, 4) world (m, Z-up) -> the file's stage space (units, up axis), scale included."""
+        m = self.to_stage.copy()
+        m[:3, :3] *= self.to_stage_scale
+        return m
+
+    def local(self, world: np.ndarray) -> np.ndarray:
+        """(T, 4, 4) the tokens' local transforms in the file's skeleton space from the rig's
+        joint world transforms (J, 4, 4)."""
+        k = np.einsum("ab,jbc->jac", self.to_stage, world[self.order])
+        k[:, :3, 3] *= self.to_stage_scale
+        k = np.einsum("ab,jbc->jac", self.inv_placed, k)
+        k[:, :3, 3] /= self.skel_scale
+        out = k.copy()
+        child = self.parents >= 0
+        out[child] = np.linalg.inv(k[self.parents[child]]) @ k[child]
+        return out
+
+
+def _skeleton_target(rig: Rig, rig_file: Path) -> _SkeletonTarget:
+    """The Skeleton of ``rig_file`` matched to ``rig`` by joint name (the reader's names:
+    ``handretarget:jointNames``, else ``jointNames``, else the token's last element); every rig
+    joint must be there except a free root the reader added (``free_root_added``)."""
+    from ..rig.usd_io import _find_skeleton, _open_stage, _parents_from_paths, _prim_placement
 
     Gf, Sdf, Tf, Ts, Usd, UsdGeom, UsdSkel, Vt = _pxr()
     src = str(rig_file)
     stage = _open_stage(rig_file)
     mpu = float(UsdGeom.GetStageMetersPerUnit(stage))
     up = str(UsdGeom.GetStageUpAxis(stage))
-    if abs(mpu - 1.0) > 1e-12 or up != "Z":
-        raise InputError(
-            f"the rig file is in metersPerUnit {mpu}, upAxis {up}; the result layer is metres and Z-up "
-            "(write the rig with write_rig_usd first)",
-            source=src,
-            element="metersPerUnit/upAxis",
-        )
+    if up not in ("Y", "Z") or not np.isfinite(mpu) or mpu <= 0:
+        raise InputError(f"the rig file has metersPerUnit {mpu}, upAxis {up}", source=src,
+                         element="metersPerUnit/upAxis")
     skel = _find_skeleton(stage)
     if skel is None:
         raise InputError("no UsdSkel.Skeleton in the rig file", source=src, element="Skeleton")
@@ -160,9 +191,12 @@ def _rig_skeleton_info(rig: Rig, rig_file: Path):
     if names is None and skel.GetJointNamesAttr().HasAuthoredValue():
         names = skel.GetJointNamesAttr().Get()
     names = [str(n) for n in names] if names is not None else [t.rsplit("/", 1)[-1] for t in tokens]
-    if len(names) != len(tokens) or len(tokens) != rig.n_joints:
+    added = rig.metadata.get("free_root_added")
+    expected = rig.n_joints - (1 if added else 0)
+    if len(names) != len(tokens) or len(tokens) != expected:
         raise InputError(
-            f"the rig file's skeleton has {len(tokens)} joints, the rig {rig.n_joints}",
+            f"the rig file's skeleton has {len(tokens)} joints, the rig {rig.n_joints}"
+            + (f" (one of them the added free root {added!r})" if added else ""),
             source=src,
             element=f"{skel.GetPath()}.joints",
         )
@@ -170,11 +204,16 @@ def _rig_skeleton_info(rig: Rig, rig_file: Path):
         order = np.array([rig.joint_index(n) for n in names], dtype=np.int64)
     except KeyError as exc:
         raise InputError(f"the rig file does not match the rig: {exc}", source=src, element="joints") from exc
+    if added and rig.joint_index(added) in order:
+        raise InputError(f"the rig file has a joint named like the added free root {added!r}", source=src,
+                         element="joints")
+    parents = np.array(_parents_from_paths(tokens, src=src, element=f"{skel.GetPath()}.joints"), dtype=np.int64)
+    scale, placed = _prim_placement(skel.GetPrim(), src=src)
     path = skel.GetPath()
     root = path.GetParentPath()
     while root.pathElementCount > 1:
         root = root.GetParentPath()
-    return root.name, str(path), tokens, order
+    return _SkeletonTarget(root.name, str(path), tokens, order, parents, mpu, up, scale, placed)
 
 
 def _check_curves(rig: Rig, dof_curves, fps: float, n_frames: int):
@@ -191,10 +230,11 @@ def _check_curves(rig: Rig, dof_curves, fps: float, n_frames: int):
             raise InputError(f"curve of DOF {rig.dofs[i].name!r} has degree {c.degree} > 3", element="dof_curves")
 
 
-def _set_time_metadata(stage, fps: float, n_frames: int):
+def _set_time_metadata(stage, fps: float, n_frames: int, meters_per_unit: float = 1.0, up_axis: str = "Z"):
     Gf, Sdf, Tf, Ts, Usd, UsdGeom, UsdSkel, Vt = _pxr()
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    # the units and axes of the file the layer composes over (a root layer's metadata wins)
+    UsdGeom.SetStageMetersPerUnit(stage, meters_per_unit)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if up_axis == "Y" else UsdGeom.Tokens.z)
     stage.SetTimeCodesPerSecond(float(fps))
     stage.SetFramesPerSecond(float(fps))
     stage.SetStartTimeCode(0.0)
@@ -238,7 +278,8 @@ def write_animation_usd(
     # the scene graph: either the rig is sublayered, or written into this layer
     if rig_file is not None:
         rig_path = Path(rig_file)
-        root_name, skel_path, tokens, order = _rig_skeleton_info(rig, rig_path)
+        target = _skeleton_target(rig, rig_path)
+        root_name, skel_path, tokens = target.root_name, target.skel_path, target.tokens
         stage = Usd.Stage.CreateInMemory()
         out_dir = path.resolve().parent
         sublayer = os.path.relpath(rig_path.resolve(), out_dir).replace(os.sep, "/")
@@ -254,9 +295,10 @@ def write_animation_usd(
         skel = UsdSkel.Skeleton(stage.GetPrimAtPath(f"/{root_name}/Skeleton"))
         skel_prim = skel.GetPrim()
         tokens = [str(t) for t in skel.GetJointsAttr().Get()]
-        order = np.arange(rig.n_joints)
+        target = _SkeletonTarget(root_name, str(skel.GetPath()), tokens, np.arange(rig.n_joints),
+                                 np.array([j.parent for j in rig.joints]), 1.0, "Z", 1.0, np.eye(4))
         sublayer = None
-    _set_time_metadata(stage, fps, n_frames)
+    _set_time_metadata(stage, fps, n_frames, target.meters_per_unit, target.up_axis)
     layer = stage.GetRootLayer()
     layer.customLayerData = {
         "handretarget:format": FORMAT_NAME,
@@ -273,7 +315,7 @@ def write_animation_usd(
         if dof_curves else np.zeros((n_frames, 0))
     t_attr, r_attr, s_attr = anim.CreateTranslationsAttr(), anim.CreateRotationsAttr(), anim.CreateScalesAttr()
     for f in range(n_frames):
-        local = local_joint_transforms(rig, q[f])[order]
+        local = target.local(rig.kinematics().pose(q[f]).world)
         mats = Vt.Matrix4dArray.FromNumpy(np.ascontiguousarray(local.transpose(0, 2, 1)))
         translations, rotations, scales = UsdSkel.DecomposeTransforms(mats)
         code = Usd.TimeCode(float(f))
@@ -305,7 +347,7 @@ def write_animation_usd(
         })
 
     if object_vertices is not None or object_faces is not None or object_poses is not None:
-        _write_object(stage, object_vertices, object_faces, object_poses, n_frames)
+        _write_object(stage, object_vertices, object_faces, object_poses, n_frames, target.stage_transform())
 
     if sublayer is not None:
         # DefinePrim() made the rig's root a typeless "def" here; the rig file defines it
@@ -321,7 +363,9 @@ def write_animation_usd(
             raise OSError(f"USD could not write {path}")
 
 
-def _write_object(stage, vertices, faces, poses, n_frames: int):
+def _write_object(stage, vertices, faces, poses, n_frames: int, stage_transform=None):
+    """/Object: the mesh (metres, its own frame) under one time-sampled xformOp:transform,
+    ``stage_transform`` (4, 4; the file's units and up axis, identity by default) @ pose."""
     Gf, Sdf, Tf, Ts, Usd, UsdGeom, UsdSkel, Vt = _pxr()
     if vertices is None or faces is None or poses is None:
         raise InputError("the object needs vertices, faces and poses together", element="object")
@@ -338,8 +382,9 @@ def _write_object(stage, vertices, faces, poses, n_frames: int):
                          element="object_poses")
     xform = UsdGeom.Xform.Define(stage, "/Object")
     op = xform.AddTransformOp()
+    to_stage = np.eye(4) if stage_transform is None else np.asarray(stage_transform, dtype=np.float64)
     for k in range(n_frames):
-        op.Set(Gf.Matrix4d(poses[k].T.tolist()), Usd.TimeCode(float(k)))
+        op.Set(Gf.Matrix4d((to_stage @ poses[k]).T.tolist()), Usd.TimeCode(float(k)))
     mesh = UsdGeom.Mesh.Define(stage, "/Object/Mesh")
     mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(v, dtype=np.float32)))
     mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(f), 3, dtype=np.int32)))
