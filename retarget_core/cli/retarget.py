@@ -19,6 +19,10 @@ def add_commands(sub) -> None:
     ret.add_argument("--set", action="append", metavar="KEY=VALUE",
                      help="configuration override, e.g. solver.maxeval=50 (repeatable)")
     ret.add_argument("--frames", metavar="START:END", help="retarget only these frames of the clip (end excluded)")
+    ret.add_argument("--root-body", default=None, help="MJCF target: the hand's root body (a forearm or mount "
+                                                       "above it is left out)")
+    ret.add_argument("--hand-map", default=None,
+                     help="hand mapping JSON for the target, when its DOFs are inferred and the hand model cannot tell")
     ret.add_argument("--max-annotation-displacement-mm", type=float, default=3.0, metavar="MM",
                      help="annotations with positions made for an earlier version of a rig's mesh are carried onto "
                           "its current mesh (closest surface point); refuse when a point moves further (default 3)")
@@ -31,8 +35,12 @@ def _cmd_retarget(args) -> int:
     from ..solve.config import load_config
 
     config = load_config(args.config, args.preset, _parse_sets(args.set))
+    from ..rig.hand_model import load_hand_mapping
+
     inputs = load_inputs(args.clip, args.rig, args.annotations, source_rig=args.source_rig, frames=args.frames,
-                         annotation_max_displacement=args.max_annotation_displacement_mm / 1000.0)
+                         annotation_max_displacement=args.max_annotation_displacement_mm / 1000.0,
+                         target_options={"root_body": args.root_body,
+                                         "mapping": load_hand_mapping(args.hand_map) if args.hand_map else None})
     rig_path = None if str(args.rig).startswith("demo:") else args.rig
     result, paths = _run_retarget(inputs, config, _executor(args), Path(args.out), rig_path)
     s = result.summary

@@ -35,6 +35,10 @@ def load_rig(path, *, wrapper_resolution: float = 0.002, root_body: str | None =
     if not path.is_file():
         raise InputError("no such file", source=shown)
     suffix = path.suffix.lower()
+    if root_body is not None and suffix not in MJCF_SUFFIXES:
+        raise InputError(f"a root body picks the hand inside an MJCF model; {path.name} is not MJCF "
+                         "(a URDF's hand is the tree below its root link; a USD hand is its Skeleton)",
+                         source=shown, element="root_body")
     if suffix in USD_SUFFIXES:
         from .usd_io import read_rig_usd
 
@@ -135,5 +139,8 @@ def resolve_rig(spec: str, **load_options) -> Rig:
         name, _, res = spec[len("demo:"):].partition("@")
         if name not in DEMO_HANDS:
             raise InputError(f"unknown demo hand {name!r}; known: {', '.join(DEMO_HANDS)}", element="rig")
+        if any(v is not None for v in load_options.values()):
+            raise InputError(f"{spec}: a demo hand takes no rig options "
+                             f"({', '.join(k for k, v in load_options.items() if v is not None)})", element="rig")
         return demo_hand(name, resolution=demo_resolution(res, spec))
     return load_rig(spec, **load_options)
