@@ -68,11 +68,86 @@ def _arrays(rig, world=None):
                 joint_weights=rig.surface.joint_weights)
 
 
+#: the body-like skeleton above the hand's own root joint (the forearm): name, parent, world position
+BODY = [("spine", -1, (0.0, -0.45, 0.0)), ("chest", 0, (0.0, -0.30, 0.0)), ("neck", 1, (0.0, -0.30, 0.10)),
+        ("head", 2, (0.0, -0.30, 0.20)), ("upperarm", 1, (0.0, -0.15, 0.0))]
+#: forearm skin proximal of this (m, along the hand's forearm axis -Y) is carried by the upper arm
+ARM_CUT_Y = -0.035
+
+
+def _body_arrays(rig, hands=1):
+    """The hand (twice, the second 0.3 m to the side, with a suffix, for ``hands=2``) under a
+    spine / chest / neck / head / upper-arm skeleton, its mesh the hand's surface whose proximal
+    forearm the upper arm carries, plus a closed torso box the chest carries."""
+    names = [b[0] for b in BODY]
+    parents = [b[1] for b in BODY]
+    bind = []
+    for _, _, position in BODY:
+        m = np.eye(4)
+        m[:3, 3] = position
+        bind.append(m)
+    hand_bind = rig.kinematics().bind_world
+    vertices, faces, indices, weights = [], [], [], []
+    for h in range(hands):
+        offset = np.array([0.3 * h, 0.0, 0.0])
+        base = len(names)
+        suffix = "" if h == 0 else f"_{h}"
+        names += [n + suffix for n in rig.joint_names]
+        parents += [4 if j.parent < 0 else base + j.parent for j in rig.joints]
+        shifted = hand_bind.copy()
+        shifted[:, :3, 3] += offset
+        bind += list(shifted)
+        v = rig.surface.vertices
+        ji = rig.surface.joint_indices + base
+        jw = rig.surface.joint_weights.copy()
+        arm = v[:, 1] < ARM_CUT_Y
+        ji[arm], jw[arm] = 4, 0.0
+        jw[arm, 0] = 1.0
+        faces.append(rig.surface.faces + sum(len(x) for x in vertices))
+        vertices.append(v + offset)
+        indices.append(ji)
+        weights.append(jw)
+    corners = np.array([[x, y, z] for x in (-0.12, 0.12) for y in (-0.5, -0.25) for z in (-0.08, 0.08)])
+    box = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6],
+                    [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    faces.append(box + sum(len(x) for x in vertices))
+    vertices.append(corners)
+    k = rig.surface.joint_indices.shape[1]
+    indices.append(np.full((8, k), 1))
+    weights.append(np.column_stack([np.ones(8), np.zeros((8, k - 1))]))
+    return dict(joint_names=names, parents=parents, bind_world=np.array(bind), vertices=np.concatenate(vertices),
+                faces=np.concatenate(faces), joint_indices=np.concatenate(indices),
+                joint_weights=np.concatenate(weights))
+
+
 @pytest.fixture(scope="module")
 def files(hand, tmp_path_factory):
     folder = tmp_path_factory.mktemp("plain_usd")
-    return {name: write_plain_usdskel(folder / f"{name}.usda", **_arrays(hand), **options)
-            for name, options in VARIANTS.items()}
+    out = {name: write_plain_usdskel(folder / f"{name}.usda", **_arrays(hand), **options)
+           for name, options in VARIANTS.items()}
+    out["body"] = write_plain_usdskel(folder / "body.usda", **_body_arrays(hand), meters_per_unit=0.01, up_axis="Y",
+                                      root_name="Character")
+    return out
+
+
+def test_a_hand_inside_a_body_skeleton_is_found_and_cut_out(files, core, hand, tmp_path):
+    rig = read_rig_usd(files["body"])
+    # the spine, chest, neck, head and upper arm are gone; the forearm (the hand's own root) stays
+    assert rig.joint_names == core.joint_names and rig.dof_names == core.dof_names
+    assert rig.metadata["hand_root"] == hand.joint_names[0]
+    # the surface: the hand's, minus the forearm skin the upper arm carried, its opening capped
+    report = rig.surface.topology()
+    assert report.closed and report.manifold and report.components == 1
+    kept = rig.surface.vertices[:-1]  # the last vertex is the cap's centre
+    assert kept[:, 1].min() >= ARM_CUT_Y - 0.01 and len(kept) < hand.surface.n_vertices
+    assert rig.surface.vertices[-1][1] == pytest.approx(ARM_CUT_Y, abs=0.01)
+    # two hands: said, and settled by naming one
+    two = write_plain_usdskel(tmp_path / "two_hands.usda", **_body_arrays(hand, hands=2))
+    with pytest.raises(InputError, match=r"2 hands.*--hand-root"):
+        read_rig_usd(two)
+    second = read_rig_usd(two, hand_root=hand.joint_names[0] + "_1")
+    assert second.n_dofs == core.n_dofs
+    assert second.surface.vertices[:, 0].mean() == pytest.approx(rig.surface.vertices[:, 0].mean() + 0.3, abs=1e-3)
 
 
 @pytest.fixture(scope="module")
@@ -266,7 +341,7 @@ def retargeted(files, core, clip_file, tmp_path_factory):
     save_rig(core, core_file)
     out = {}
     for name, path, plain in (("plain", files["plain"], True), ("cm-yup-placed", files["cm-yup-placed"], True),
-                              ("core", core_file, False)):
+                              ("body", files["body"], True), ("core", core_file, False)):
         (folder / name).mkdir()
         out[name] = (_through_the_commands(path, clip_file, folder / name, plain=plain),
                      folder / name / "result")
@@ -276,7 +351,7 @@ def retargeted(files, core, clip_file, tmp_path_factory):
 def test_plain_files_retarget_like_the_core_hand(retargeted):
     medians = {k: r["summary"]["contact_distance_median_mm"] for k, (r, _) in retargeted.items()}
     assert all(np.isfinite(v) for v in medians.values()), medians
-    for name in ("plain", "cm-yup-placed"):
+    for name in ("plain", "cm-yup-placed", "body"):
         assert len(retargeted[name][0]["dof_names"]) == len(retargeted["core"][0]["dof_names"])
         assert abs(medians[name] - medians["core"]) <= 0.1, medians
 

@@ -17,6 +17,8 @@ def add_commands(sub) -> None:
                              "when its hand model cannot tell")
     a_prop.add_argument("--hand-map", default=None, help="hand mapping JSON for the target rig")
     a_prop.add_argument("--root-body", default=None, help="MJCF target: the hand's root body")
+    a_prop.add_argument("--hand-root", default=None,
+                        help="plain USD target inside a larger skeleton: the hand's root joint (default: found)")
     a_prop.add_argument("--png", nargs="?", const="", default=None, metavar="FILE",
                         help="also draw both hands with the proposed curves and markers, seen from the palm "
                              "and the back, to FILE (without FILE: next to the JSON, same name, .png)")
@@ -50,7 +52,7 @@ def _cmd_annotate_propose(args) -> int:
     source_map = load_hand_mapping(args.source_hand_map) if args.source_hand_map else None
     target_map = load_hand_mapping(args.hand_map) if args.hand_map else None
     source = resolve_rig(args.source, mapping=source_map)
-    target = resolve_rig(args.target, mapping=target_map, root_body=args.root_body)
+    target = resolve_rig(args.target, mapping=target_map, root_body=args.root_body, hand_root=args.hand_root)
     proposal = propose(source, target, source_mapping=source_map, target_mapping=target_map)
     annotations = proposal.annotations
     save_annotations(with_positions(annotations, source, target), args.out)  # positions: survive mesh edits

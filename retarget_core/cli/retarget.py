@@ -21,6 +21,8 @@ def add_commands(sub) -> None:
     ret.add_argument("--frames", metavar="START:END", help="retarget only these frames of the clip (end excluded)")
     ret.add_argument("--root-body", default=None, help="MJCF target: the hand's root body (a forearm or mount "
                                                        "above it is left out)")
+    ret.add_argument("--hand-root", default=None,
+                     help="plain USD target inside a larger skeleton: the hand's root joint (default: found)")
     ret.add_argument("--hand-map", default=None,
                      help="hand mapping JSON for the target, when its DOFs are inferred and the hand model cannot tell")
     ret.add_argument("--max-annotation-displacement-mm", type=float, default=3.0, metavar="MM",
@@ -39,7 +41,7 @@ def _cmd_retarget(args) -> int:
 
     inputs = load_inputs(args.clip, args.rig, args.annotations, source_rig=args.source_rig, frames=args.frames,
                          annotation_max_displacement=args.max_annotation_displacement_mm / 1000.0,
-                         target_options={"root_body": args.root_body,
+                         target_options={"root_body": args.root_body, "hand_root": args.hand_root,
                                          "mapping": load_hand_mapping(args.hand_map) if args.hand_map else None})
     rig_path = None if str(args.rig).startswith("demo:") else args.rig
     result, paths = _run_retarget(inputs, config, _executor(args), Path(args.out), rig_path)

@@ -24,6 +24,8 @@ def add_commands(sub) -> None:
     rig_info.add_argument("path")
     rig_info.add_argument("--json", action="store_true", help="print JSON instead of text")
     rig_info.add_argument("--root-body", default=None, help="MJCF: the hand's root body")
+    rig_info.add_argument("--hand-root", default=None,
+                          help="USD: the hand's root joint inside a larger skeleton (default: found)")
     rig_info.add_argument("--wrapper-resolution", type=float, default=0.002,
                           help="URDF/MJCF: wrapper surface cell size in metres")
     rig_info.add_argument("--hand-map", default=None,
@@ -40,6 +42,8 @@ def add_commands(sub) -> None:
                             help="where to write the DOF limits TOML (default: next to --out, .limits.toml)")
     rig_import.add_argument("--hand-map", default=None, help="hand mapping JSON that settles what detection cannot")
     rig_import.add_argument("--root-body", default=None, help="MJCF: the hand's root body")
+    rig_import.add_argument("--hand-root", default=None,
+                          help="USD: the hand's root joint inside a larger skeleton (default: found)")
     rig_import.add_argument("--wrapper-resolution", type=float, default=0.002,
                             help="URDF/MJCF: wrapper surface cell size in metres")
     rig_import.set_defaults(func=_cmd_rig_import)
@@ -98,7 +102,7 @@ def _cmd_rig_info(args) -> int:
     from ..rig.summary import format_rig_info, rig_summary
 
     rig = load_rig(args.path, wrapper_resolution=args.wrapper_resolution, root_body=args.root_body,
-                   mapping=_mapping(args.hand_map))
+                   mapping=_mapping(args.hand_map), hand_root=args.hand_root)
     if args.json:
         print(json.dumps(rig_summary(rig), indent=2))
     else:
@@ -118,7 +122,7 @@ def _cmd_rig_import(args) -> int:
     from ..rig.io import load_rig, save_rig
 
     rig = load_rig(args.path, wrapper_resolution=args.wrapper_resolution, root_body=args.root_body,
-                   mapping=_mapping(args.hand_map))
+                   mapping=_mapping(args.hand_map), hand_root=args.hand_root)
     if args.limits:
         rig = apply_limits(rig, args.limits)
     out = Path(args.out)

@@ -13,11 +13,12 @@ MJCF_SUFFIXES = (".xml", ".mjcf")
 
 
 def load_rig(path, *, wrapper_resolution: float = 0.002, root_body: str | None = None, confine_to=None,
-             mapping=None) -> Rig:
+             mapping=None, hand_root: str | None = None) -> Rig:
     """Read a rig from USD, or import a robot hand from URDF or MJCF (which also builds its
     closed wrapper surface at ``wrapper_resolution`` metres). A plain UsdSkel file gets DOFs
     by role (:func:`~retarget_core.rig.usd_io.read_rig_usd`), settled by ``mapping`` (a
-    :class:`~retarget_core.rig.hand_model.HandMapping`) where the hand model cannot tell.
+    :class:`~retarget_core.rig.hand_model.HandMapping`) where the hand model cannot tell, and
+    a hand inside a larger skeleton is cut out below ``hand_root`` (or where its fingers branch).
 
     ``confine_to``: a folder (e.g. an unpacked upload) that every file the rig refers to must
     lie in (URDF/MJCF meshes and includes, USD sublayers, references and payloads); anything
@@ -35,6 +36,9 @@ def load_rig(path, *, wrapper_resolution: float = 0.002, root_body: str | None =
     if not path.is_file():
         raise InputError("no such file", source=shown)
     suffix = path.suffix.lower()
+    if hand_root is not None and suffix not in USD_SUFFIXES:
+        raise InputError(f"a hand root picks the hand inside a USD skeleton; {path.name} is not USD "
+                         "(use --root-body for an MJCF model)", source=shown, element="hand_root")
     if root_body is not None and suffix not in MJCF_SUFFIXES:
         raise InputError(f"a root body picks the hand inside an MJCF model; {path.name} is not MJCF "
                          "(a URDF's hand is the tree below its root link; a USD hand is its Skeleton)",
@@ -42,7 +46,7 @@ def load_rig(path, *, wrapper_resolution: float = 0.002, root_body: str | None =
     if suffix in USD_SUFFIXES:
         from .usd_io import read_rig_usd
 
-        return read_rig_usd(path, confine_to=confine_to, mapping=mapping)
+        return read_rig_usd(path, confine_to=confine_to, mapping=mapping, hand_root=hand_root)
     if suffix in URDF_SUFFIXES:
         from .robot_import import load_urdf
 

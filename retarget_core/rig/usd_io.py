@@ -639,7 +639,7 @@ def _read_mesh(prim, skel_paths: list[str], *, src: str, element: str):
     return points, faces, ji, jw
 
 
-def read_rig_usd(path, *, confine_to=None, mapping=None) -> Rig:
+def read_rig_usd(path, *, confine_to=None, mapping=None, hand_root=None) -> Rig:
     """Read a skinned hand from USD: a rig written by :func:`write_rig_usd` (its
     ``handretarget:`` DOF spec), or a plain UsdSkel file as a DCC writes it (SkelRoot >
     Skeleton with joints, restTransforms, bindTransforms; a Mesh bound with jointIndices,
@@ -648,7 +648,9 @@ def read_rig_usd(path, *, confine_to=None, mapping=None) -> Rig:
     :class:`~retarget_core.rig.hand_model.HandMapping`, when the hand model cannot tell) with a
     free root added around the skeleton's own root joint. The Skeleton prim's world transform
     (its ancestors' xformOps included; uniform scale allowed), metersPerUnit and upAxis Y or Z
-    are applied: the rig is in metres, Z-up, world. Joint matrices must be rigid within
+    are applied: the rig is in metres, Z-up, world. A plain file whose skeleton is more than the
+    hand (a character's body) gives its hand (:func:`~retarget_core.rig.hand_cut.cut_hand`:
+    below ``hand_root``, or found where the fingers branch). Joint matrices must be rigid within
     |R^T R - I| <= 1e-5 and 1e-6 on the last row (float32 files pass) and are re-orthonormalised.
     Validated before returning.
 
@@ -711,6 +713,9 @@ def read_rig_usd(path, *, confine_to=None, mapping=None) -> Rig:
     bind_usd = None if bind_usd is None else orthonormalized(bind_usd)
     dofs = _read_dofs(prim, n, src=src)
     plain = dofs is None
+    if hand_root is not None and not plain:
+        raise InputError("this rig file carries a handretarget DOF spec: it is a hand rig already, there is no "
+                         "hand to cut out (drop --hand-root)", source=src, element="hand_root")
     dofs = dofs or []
     placement = _prim_placement(prim, src=src)
 
@@ -803,7 +808,8 @@ def read_rig_usd(path, *, confine_to=None, mapping=None) -> Rig:
         visual=skinned("visual") if "visual" in meshes else None,
         metadata=metadata if isinstance(metadata, dict) else {"value": metadata},
     )
-    rig.validate(source=src)
+    # a plain file's mesh may be a whole character: closed only once the hand is cut out
+    rig.validate(source=src, require_closed=not plain)
 
     # The core binds surfaces at the rest pose. If the file's bindTransforms differ from the
     # rest pose's world transforms, carry the points from the file's bind pose to the rest pose.
@@ -821,11 +827,16 @@ def read_rig_usd(path, *, confine_to=None, mapping=None) -> Rig:
                 moved = np.einsum("vj,jab,vb->va", dense, skin[:, :3, :], homog)
                 mesh.vertices = moved
             rig.__dict__.pop("_kinematics", None)
-            rig.validate(source=src)
+            rig.validate(source=src, require_closed=not plain)
     if plain:
-        # A skeleton from a DCC carries no DOFs: the free root around its own root joint and
-        # DOFs by role from the hand model (dof_roles), which says what it cannot tell.
+        # A skeleton from a DCC carries no DOFs: the hand cut out of a larger skeleton (hand_cut),
+        # the free root around its own root joint and DOFs by role from the hand model
+        # (dof_roles), which says what it cannot tell.
         from .dof_roles import infer_dofs
+        from .hand_cut import cut_hand
+
+        rig = cut_hand(rig, hand_root)
+        rig.validate(source=src)
 
         try:
             rig = infer_dofs(rig, mapping=mapping)

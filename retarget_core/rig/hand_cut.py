@@ -1,0 +1,165 @@
+"""A hand inside a larger skeleton (a character's body: spine, arm, hand) cut out as a hand rig.
+
+The hand's root joint is named (``hand_root``, e.g. the forearm or the wrist) or found: the
+palm is the one joint where three or more unbranched jointed chains (fingers) start, and the
+hand's root is its parent (so the wrist bends). Only that joint's subtree is kept; the surface
+is the part of the bound mesh the subtree carries (skin weight share at least one half),
+its largest connected piece, each opening left by the cut closed with a fan around the
+opening's centre (the cap: it lies at the forearm, far from any contact). Skin weight on joints
+outside the subtree goes to the hand's root. When a rig is already only a hand (its palm's
+parent is the skeleton's root, or there is no parent), it is returned unchanged."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from ..errors import InputError
+from ..mesh.isosurface import largest_component
+from .model import Joint, Rig, SkinnedMesh
+
+#: A vertex belongs to the cut hand when the kept joints carry at least this share of it.
+KEEP_SHARE = 0.5
+
+
+def _children(rig: Rig) -> list[list[int]]:
+    out: list[list[int]] = [[] for _ in rig.joints]
+    for j, joint in enumerate(rig.joints):
+        if joint.parent >= 0:
+            out[joint.parent].append(j)
+    return out
+
+
+def _fans(rig: Rig) -> list[int]:
+    """Joints where three or more unbranched chains of at least two joints start."""
+    children = _children(rig)
+
+    def chain_length(j):  # joints down an unbranched chain from j to its leaf, 0 when it branches
+        n = 0
+        while True:
+            n += 1
+            if not children[j]:
+                return n
+            if len(children[j]) > 1:
+                return 0
+            j = children[j][0]
+
+    return [j for j in range(rig.n_joints) if sum(chain_length(c) >= 2 for c in children[j]) >= 3]
+
+
+def find_hand_root(rig: Rig, hand_root: str | None = None) -> int:
+    """The joint the hand's subtree starts at (see the module docstring)."""
+    if hand_root is not None:
+        try:
+            return rig.joint_index(hand_root)
+        except KeyError:
+            raise InputError(f"no joint named {hand_root!r} (--hand-root); joints: "
+                             f"{', '.join(rig.joint_names[:12])}{', ...' if rig.n_joints > 12 else ''}",
+                             source=rig.name, element="hand_root") from None
+    fans = _fans(rig)
+    # a fan inside another fan's subtree is part of the same hand (fingers branching from
+    # several joints): keep the outermost
+    ancestors = {j: set() for j in fans}
+    for j in fans:
+        p = rig.joints[j].parent
+        while p >= 0:
+            ancestors[j].add(p)
+            p = rig.joints[p].parent
+    outer = [j for j in fans if not (ancestors[j] & set(fans))]
+    if not outer:
+        return 0
+    if len(outer) > 1:
+        names = ", ".join(rig.joint_names[j] for j in outer)
+        raise InputError(f"the skeleton has {len(outer)} hands (fingers branch at {names}): name the one to "
+                         "retarget with --hand-root (its wrist or forearm joint)", source=rig.name, element="hand_root")
+    palm = outer[0]
+    return max(rig.joints[palm].parent, 0)
+
+
+def cut_hand(rig: Rig, hand_root: str | None = None) -> Rig:
+    """The hand of ``rig`` as its own rig (no DOFs kept on the removed joints; the joints of the
+    subtree keep theirs). See the module docstring."""
+    root = find_hand_root(rig, hand_root)
+    if root == 0:
+        return rig
+    keep = [root]
+    children = _children(rig)
+    for j in keep:
+        keep.extend(children[j])
+    keep = sorted(keep)
+    new_index = np.full(rig.n_joints, -1, dtype=np.int64)
+    new_index[keep] = np.arange(len(keep))
+    world = rig.kinematics().bind_world
+    joints = []
+    for j in keep:
+        parent = rig.joints[j].parent
+        local = world[j] if j == root else np.array(rig.joints[j].rest_local, float)
+        joints.append(Joint(rig.joints[j].name, -1 if j == root else int(new_index[parent]), local))
+    dofs = [replace(d, joint=int(new_index[d.joint]), axis=np.array(d.axis, float))
+            for d in rig.dofs if new_index[d.joint] >= 0]
+    surface = _cut_mesh(rig.surface, new_index, int(new_index[root]), rig.n_joints, what=f"{rig.name} surface")
+    cut = Rig(name=rig.name, joints=joints, dofs=dofs, surface=surface, visual=None,
+              metadata={**rig.metadata, "hand_root": rig.joint_names[root],
+                        "cut_from": f"{rig.n_joints} joints, {rig.surface.n_vertices} vertices"})
+    cut.validate(source=f"{rig.name} (the hand below {rig.joint_names[root]!r})")
+    return cut
+
+
+def _cut_mesh(mesh: SkinnedMesh, new_index: np.ndarray, root: int, n_joints: int, *, what: str) -> SkinnedMesh:
+    dense = mesh.dense_weights(n_joints)
+    kept_joints = np.nonzero(new_index >= 0)[0]
+    share = dense[:, kept_joints].sum(axis=1)
+    inside = share >= KEEP_SHARE
+    faces = mesh.faces[inside[mesh.faces].all(axis=1)]
+    if not len(faces):
+        raise InputError("no part of the mesh is carried by the hand's joints", source=what)
+    # the vertex ids ride along as a fourth column through the compaction
+    tagged, faces = largest_component(np.column_stack([mesh.vertices, np.arange(mesh.n_vertices)]), faces)
+    vertices, used = tagged[:, :3], tagged[:, 3].astype(np.int64)
+    weights = np.zeros((len(vertices), len(kept_joints)))
+    weights[:, :] = dense[used][:, kept_joints]
+    weights[:, root] += 1.0 - weights.sum(axis=1)  # what the removed joints carried
+    vertices, faces, weights = _cap_openings(vertices, faces, weights)
+    k = min(4, weights.shape[1])
+    order = np.argsort(-weights, axis=1)[:, :k]
+    top = np.take_along_axis(weights, order, axis=1)
+    top /= top.sum(axis=1, keepdims=True)
+    return SkinnedMesh(vertices=vertices, faces=faces, joint_indices=order, joint_weights=top)
+
+
+def _cap_openings(vertices, faces, weights):
+    """Close every boundary loop with a fan around its centroid (oriented like the mesh)."""
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    key = {tuple(e) for e in edges.tolist()}
+    boundary = [(a, b) for a, b in edges.tolist() if (b, a) not in key]
+    if not boundary:
+        return vertices, faces, weights
+    following = {}
+    for a, b in boundary:
+        if a in following:
+            raise InputError("the cut leaves an opening that is not a simple loop (a non-manifold boundary); "
+                             "pick another joint with --hand-root", element="hand_root")
+        following[a] = b
+    new_v, new_f, new_w = [vertices], [faces], [weights]
+    n = len(vertices)
+    seen = set()
+    for start in list(following):
+        if start in seen:
+            continue
+        loop = [start]
+        seen.add(start)
+        while following[loop[-1]] != start:
+            nxt = following[loop[-1]]
+            if nxt in seen:
+                raise InputError("the cut leaves tangled openings; pick another joint with --hand-root",
+                                 element="hand_root")
+            loop.append(nxt)
+            seen.add(nxt)
+        loop = np.array(loop)
+        new_v.append(vertices[loop].mean(axis=0)[None])
+        new_w.append(weights[loop].mean(axis=0)[None])
+        # the boundary edge a -> b belongs to a face running a -> b: the cap runs b -> a
+        new_f.append(np.stack([np.roll(loop, -1), loop, np.full(len(loop), n)], axis=1))
+        n += 1
+    return np.concatenate(new_v), np.concatenate(new_f), np.concatenate(new_w)
