@@ -379,6 +379,45 @@ def test_the_result_layer_plays_on_the_users_own_file(files, retargeted):
         assert np.abs(usd_points - core_points).max() <= 1e-5, frame
 
 
+def test_the_result_layer_plays_on_the_characters_own_file(files, retargeted):
+    """A hand cut from a body: the layer composes over the body file, USD's skinning moves the
+    hand's skin like the core's rig, the body keeps its rest, and the hand root's world motion
+    is an Xform for the arm's IK."""
+    from pxr import Usd, UsdGeom, UsdSkel
+    from scipy.spatial import cKDTree
+
+    from retarget_core.export import read_dof_bsplines
+
+    doc, out = retargeted["body"]
+    layer = out / "animation.usda"
+    assert not (out / "rig.usda").exists()
+    rig = read_rig_usd(files["body"])
+    to_world = lambda p: p * 0.01 @ Z_UP_TO_Y_UP[:3, :3]  # noqa: E731  (cm, Y-up -> m, Z-up)
+    rest = to_world(skinned_world_points(files["body"]))
+    d, body_ids = cKDTree(rest).query(rig.surface.vertices[:-1])  # the last vertex is the cap's centre
+    assert d.max() < 1e-6
+    curves = read_dof_bsplines(layer)
+    fps = doc["fps"]
+    stage = Usd.Stage.Open(str(layer))
+    anim = UsdSkel.Animation(stage.GetPrimAtPath("/Character/Animation"))
+    tokens = [str(t) for t in anim.GetJointsAttr().Get()]
+    head = tokens.index("spine/chest/neck/head")
+    wrist = UsdGeom.Xformable(stage.GetPrimAtPath("/HandRetarget_wristTarget"))
+    skel = UsdSkel.Skeleton(stage.GetPrimAtPath("/Character/Skeleton"))
+    head_rest = np.array(skel.GetRestTransformsAttr().Get()[head].ExtractTranslation())
+    assert np.linalg.norm(head_rest) == pytest.approx(10.0, abs=1e-4)  # 10 cm from the neck
+    for frame in (0, 20, len(doc["times"]) - 1):
+        q = np.array([float(curves[name](frame / fps)) for name in rig.dof_names])
+        posed = rig.kinematics().skin(q)[:-1]
+        usd = to_world(skinned_world_points(layer, time=frame))[body_ids]
+        assert np.abs(usd - posed).max() <= 1e-5, frame
+        translations = np.array(anim.GetTranslationsAttr().Get(Usd.TimeCode(frame)))
+        assert np.allclose(translations[head], head_rest, atol=1e-4)  # the body keeps its rest
+        hand_root = rig.kinematics().pose(q).world[0]
+        m = np.array(wrist.ComputeLocalToWorldTransform(Usd.TimeCode(frame))).T
+        assert np.allclose(to_world(m[:3, 3]), hand_root[:3, 3], atol=1e-6)
+
+
 def test_rig_import_writes_the_inferred_spec_and_its_limits(files, tmp_path, capsys):
     out = tmp_path / "imported.usda"
     assert main(["rig", "import", str(files["cm-yup-placed"]), "--out", str(out)]) == 0

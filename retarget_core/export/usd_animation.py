@@ -20,6 +20,9 @@ of the rig file it composes over, 1 and Z for the project's own rig files;
                                native Ts spline equal to the fitted cubic B-spline; customData
                                ``handretarget = {dofName, knots, coefficients, degree,
                                timeUnit = "seconds", fps, extrapolation}``
+    /HandRetarget_wristTarget  Xform (a hand cut from a character's skeleton only): the world
+                               transform of the hand's root joint per frame, in the file's units;
+                               the character's other joints keep their rest in the Animation
     /Object                    Xform, xformOp:transform time-sampled per frame (when given), in
                                the file's units and up axis
       Mesh                     the object's mesh in its own frame
@@ -49,6 +52,8 @@ from ..rig.model import Rig
 FORMAT_NAME = "handretarget.animation"
 FORMAT_VERSION = 1
 DOF_PREFIX = "dof:"
+#: the Xform carrying the world motion of a hand cut from a larger skeleton (for the arm's IK)
+WRIST_TARGET = "HandRetarget_wristTarget"
 CUSTOM_KEY = "handretarget"
 _USD_EXTENSIONS = (".usda", ".usdc", ".usd")
 
@@ -134,20 +139,30 @@ def layers_over(rig: Rig, rig_file) -> bool:
 class _SkeletonTarget:
     """The Skeleton of a rig file an animation layer composes over, and how the core's world
     (metres, Z-up) maps into its space: root prim name, skeleton path, joint tokens (T,),
-    ``order`` (T,) the rig joint of each token, ``parents`` (T,) token tree, and the file's
-    metersPerUnit, upAxis and the Skeleton prim's placement (uniform scale, rigid)."""
+    ``order`` (T,) the rig joint of each token (-1: a joint the rig does not have, e.g. the
+    body around a hand cut out of a character, kept at ``rest_skel`` (T, 4, 4), its rest in
+    skeleton space), ``parents`` (T,) token tree, and the file's metersPerUnit, upAxis and the
+    Skeleton prim's placement (uniform scale, rigid)."""
 
-    def __init__(self, root_name, skel_path, tokens, order, parents, meters_per_unit, up_axis, scale, placed):
+    def __init__(self, root_name, skel_path, tokens, order, parents, meters_per_unit, up_axis, scale, placed,
+                 rest_skel=None):
         self.root_name, self.skel_path, self.tokens = root_name, skel_path, tokens
-        self.order, self.parents = order, parents
+        self.order, self.parents = np.asarray(order, dtype=np.int64), np.asarray(parents, dtype=np.int64)
         self.meters_per_unit, self.up_axis = meters_per_unit, up_axis
         from ..rig.usd_io import Y_UP_TO_Z_UP
 
         # world (m, Z-up) -> stage world (units, up axis): rotation, then units
         self.to_stage = (Y_UP_TO_Z_UP.T if up_axis == "Y" else np.eye(4)).copy()
         self.to_stage_scale = 1.0 / meters_per_unit
-        self.inv_placed = np.linalg.inv(placed)
+        self.placed = np.asarray(placed, dtype=np.float64)
+        self.inv_placed = np.linalg.inv(self.placed)
         self.skel_scale = scale
+        self.rest_skel = rest_skel
+
+    @property
+    def partial(self) -> bool:
+        """Whether the file's skeleton has joints the rig does not (a hand cut from a body)."""
+        return bool(np.any(self.order < 0))
 
     def stage_transform(self) -> np.ndarray:
         """(4, 4) world (m, Z-up) -> the file's stage space (units, up axis), scale included."""
@@ -155,13 +170,26 @@ class _SkeletonTarget:
         m[:3, :3] *= self.to_stage_scale
         return m
 
-    def local(self, world: np.ndarray) -> np.ndarray:
-        """(T, 4, 4) the tokens' local transforms in the file's skeleton space from the rig's
-        joint world transforms (J, 4, 4)."""
-        k = np.einsum("ab,jbc->jac", self.to_stage, world[self.order])
+    def skel_space(self, world: np.ndarray) -> np.ndarray:
+        """(N, 4, 4) rigid world transforms (m, Z-up) in the file's skeleton space."""
+        k = np.einsum("ab,jbc->jac", self.to_stage, world)
         k[:, :3, 3] *= self.to_stage_scale
         k = np.einsum("ab,jbc->jac", self.inv_placed, k)
         k[:, :3, 3] /= self.skel_scale
+        return k
+
+    def stage_space(self, world: np.ndarray) -> np.ndarray:
+        """(N, 4, 4) rigid world transforms (m, Z-up) in the file's stage world (its units)."""
+        k = np.einsum("ab,jbc->jac", self.to_stage, world)
+        k[:, :3, 3] *= self.to_stage_scale
+        return k
+
+    def local(self, world: np.ndarray) -> np.ndarray:
+        """(T, 4, 4) the tokens' local transforms in the file's skeleton space from the rig's
+        joint world transforms (J, 4, 4); joints the rig does not have keep their rest."""
+        mine = self.order >= 0
+        k = np.empty((len(self.order), 4, 4)) if self.rest_skel is None else self.rest_skel.copy()
+        k[mine] = self.skel_space(world[self.order[mine]])
         out = k.copy()
         child = self.parents >= 0
         out[child] = np.linalg.inv(k[self.parents[child]]) @ k[child]
@@ -192,28 +220,47 @@ def _skeleton_target(rig: Rig, rig_file: Path) -> _SkeletonTarget:
         names = skel.GetJointNamesAttr().Get()
     names = [str(n) for n in names] if names is not None else [t.rsplit("/", 1)[-1] for t in tokens]
     added = rig.metadata.get("free_root_added")
-    expected = rig.n_joints - (1 if added else 0)
-    if len(names) != len(tokens) or len(tokens) != expected:
+    cut = rig.metadata.get("hand_root")  # a hand cut out of a larger skeleton: the file has more joints
+    if len(names) != len(tokens):
+        raise InputError(f"the rig file's skeleton has {len(tokens)} joints and {len(names)} names", source=src,
+                         element=f"{skel.GetPath()}.joints")
+    index = {n: i for i, n in enumerate(rig.joint_names)}
+    order = np.array([index.get(n, -1) for n in names], dtype=np.int64)
+    expected = set(range(rig.n_joints)) - ({index[added]} if added in index else set())
+    missing = sorted(expected - set(order.tolist()))
+    if missing or (np.any(order < 0) and not cut):
         raise InputError(
             f"the rig file's skeleton has {len(tokens)} joints, the rig {rig.n_joints}"
-            + (f" (one of them the added free root {added!r})" if added else ""),
+            + (f" (one of them the added free root {added!r})" if added else "")
+            + (f"; not in the file: {', '.join(rig.joint_names[j] for j in missing[:5])}" if missing else ""),
             source=src,
             element=f"{skel.GetPath()}.joints",
         )
-    try:
-        order = np.array([rig.joint_index(n) for n in names], dtype=np.int64)
-    except KeyError as exc:
-        raise InputError(f"the rig file does not match the rig: {exc}", source=src, element="joints") from exc
-    if added and rig.joint_index(added) in order:
+    if added and index.get(added, -2) in order:
         raise InputError(f"the rig file has a joint named like the added free root {added!r}", source=src,
                          element="joints")
     parents = np.array(_parents_from_paths(tokens, src=src, element=f"{skel.GetPath()}.joints"), dtype=np.int64)
     scale, placed = _prim_placement(skel.GetPrim(), src=src)
+    rest_skel = None
+    if np.any(order < 0):
+        rest_skel = _rest_in_skel_space(skel, parents)
     path = skel.GetPath()
     root = path.GetParentPath()
     while root.pathElementCount > 1:
         root = root.GetParentPath()
-    return _SkeletonTarget(root.name, str(path), tokens, order, parents, mpu, up, scale, placed)
+    return _SkeletonTarget(root.name, str(path), tokens, order, parents, mpu, up, scale, placed, rest_skel)
+
+
+def _rest_in_skel_space(skel, parents: np.ndarray) -> np.ndarray:
+    """(T, 4, 4) the file's rest pose in skeleton space (restTransforms, else bindTransforms)."""
+    rest = skel.GetRestTransformsAttr()
+    if rest.HasAuthoredValue():
+        local = np.array(rest.Get(), dtype=np.float64).reshape(-1, 4, 4).transpose(0, 2, 1)
+        out = np.empty_like(local)
+        for j in range(len(local)):  # tokens list parents before children (UsdSkel requires it)
+            out[j] = local[j] if parents[j] < 0 else out[parents[j]] @ local[j]
+        return out
+    return np.array(skel.GetBindTransformsAttr().Get(), dtype=np.float64).reshape(-1, 4, 4).transpose(0, 2, 1)
 
 
 def _check_curves(rig: Rig, dof_curves, fps: float, n_frames: int):
@@ -314,8 +361,17 @@ def write_animation_usd(
     q = np.stack([np.asarray(c(frame_times), dtype=np.float64).reshape(n_frames) for c in dof_curves], axis=1) \
         if dof_curves else np.zeros((n_frames, 0))
     t_attr, r_attr, s_attr = anim.CreateTranslationsAttr(), anim.CreateRotationsAttr(), anim.CreateScalesAttr()
+    wrist_op = None
+    if target.partial:
+        # a hand cut from a character: the rest of the body stays at rest, and the hand's root
+        # joint's world motion is there for the arm's IK to follow
+        wrist_op = UsdGeom.Xform.Define(stage, f"/{WRIST_TARGET}").AddTransformOp()
+        hand_root = rig.joint_index(rig.metadata["hand_root"])
     for f in range(n_frames):
-        local = target.local(rig.kinematics().pose(q[f]).world)
+        world = rig.kinematics().pose(q[f]).world
+        local = target.local(world)
+        if wrist_op is not None:
+            wrist_op.Set(Gf.Matrix4d(target.stage_space(world[hand_root][None])[0].T.tolist()), Usd.TimeCode(float(f)))
         mats = Vt.Matrix4dArray.FromNumpy(np.ascontiguousarray(local.transpose(0, 2, 1)))
         translations, rotations, scales = UsdSkel.DecomposeTransforms(mats)
         code = Usd.TimeCode(float(f))
