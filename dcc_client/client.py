@@ -109,15 +109,19 @@ class RetargetClient:
 
     def submit(self, *, clip: str, rig: str, annotations: str, source_rig: str | None = None, preset: str = "default",
                overrides: dict | None = None, evaluate: bool = True, frames: tuple[int, int] | None = None,
-               idempotency_key: str | None = None) -> dict:
+               idempotency_key: str | None = None, rig_asset_path: str | None = None) -> dict:
         """Queue a job; ``frames``: (start, end) of the clip to retarget, end excluded (None: all
-        of it). With ``idempotency_key`` a repeated call returns the same job."""
+        of it). With ``idempotency_key`` a repeated call returns the same job. ``rig_asset_path``:
+        the path animation.usda sublayers (your own USD rig file, relative to where the layer
+        will sit); None: the job's rig.usda."""
         doc = {"clip": clip, "rig": rig, "annotations": annotations, "preset": preset,
                "overrides": overrides or {}, "evaluate": evaluate}
         if source_rig:
             doc["source_rig"] = source_rig
         if frames is not None:
             doc["frames"] = list(frames)
+        if rig_asset_path is not None:
+            doc["rig_asset_path"] = rig_asset_path
         headers = {"Idempotency-Key": idempotency_key} if idempotency_key else None
         return self._json("POST", "/v1/jobs", doc, headers=headers)
 

@@ -104,12 +104,15 @@ class RetargetResult:
             "unused_settings": self.unused_settings, "frames": list(self.frames), "provenance": self.provenance,
         })
 
-    def write(self, out_dir, rig_path=None) -> dict:
+    def write(self, out_dir, rig_path=None, *, rig_asset_path: str | None = None) -> dict:
         """Write animation.usda (over ``rig_path`` when it is a rig file the layer composes over,
         :func:`~retarget_core.export.usd_animation.layers_over`; else over a rig.usda written here), result.json, animation.json and scene.npz (object mesh and poses, table,
         the frame's contact targets: what ``handretarget evaluate`` measures against) into
         ``out_dir``; returns {name: path}. Without curves (fit pass off) no animation.usda is
-        written. result.json names the rig file (``rig_file``)."""
+        written. result.json names the rig file (``rig_file``). ``rig_asset_path``: the layer
+        sublayers this asset path as written (the user's own file, where the layer will sit)
+        rather than ``rig_path``, which must then be a USD file it composes over; rig.usda is
+        written here too (result.json names it)."""
         from .export import write_animation_json, write_animation_usd
         from .export.usd_animation import layers_over
         from .rig.io import USD_SUFFIXES, load_rig, save_rig
@@ -120,21 +123,28 @@ class RetargetResult:
             raise InputError("writing a loaded result needs the rig file", element="rig_path")
         rig = self.rig if self.rig is not None else load_rig(rig_path)
         paths = {}
-        if rig_path is not None and Path(str(rig_path)).suffix.lower() in USD_SUFFIXES and not layers_over(rig, rig_path):
-            rig_path = None  # a plain UsdSkel file or other units: the layer goes over a rig.usda written here
+        usd_rig = rig_path is not None and Path(str(rig_path)).suffix.lower() in USD_SUFFIXES
+        if rig_asset_path is not None and not (usd_rig and layers_over(rig, rig_path)):
+            raise InputError("a rig asset path names the user's USD file the layer composes over; this rig "
+                             "does not come from a USD file it can compose over", element="rig_asset_path")
+        if usd_rig and not layers_over(rig, rig_path):
+            rig_path = None  # the layer goes over a rig.usda written here
         if self.curves is not None:
             if rig_path is None or Path(str(rig_path)).suffix.lower() not in USD_SUFFIXES:
                 rig_path = paths["rig.usda"] = out / "rig.usda"
                 save_rig(rig, rig_path)
             paths["animation.usda"] = out / "animation.usda"
-            write_animation_usd(paths["animation.usda"], rig=rig, rig_file=str(rig_path), dof_curves=self.curves,
+            write_animation_usd(paths["animation.usda"], rig=rig, rig_file=str(rig_path), sublayer_path=rig_asset_path,
+                                dof_curves=self.curves,
                                 fps=self.fps, n_frames=self.n_frames, object_vertices=self.object_vertices,
                                 object_faces=self.object_faces, object_poses=self.object_poses,
                                 metadata={"clip": self.clip_source, "frames": list(self.frames),
                                           "summary": to_jsonable(self.summary),
                                           "provenance": to_jsonable(self.provenance)})
-        if "rig.usda" not in paths and (rig_path is None
+        if "rig.usda" not in paths and (rig_path is None or rig_asset_path is not None
                                          or Path(str(rig_path)).suffix.lower() not in USD_SUFFIXES):
+            # with a rig asset path the layer names the user's file; the rig is kept here as well
+            # (what ``evaluate`` reads, and the hand for a user without that file)
             rig_path = paths["rig.usda"] = out / "rig.usda"
             save_rig(rig, rig_path)
         if self.object_vertices is not None:

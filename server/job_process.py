@@ -37,7 +37,7 @@ import threading
 import time
 from pathlib import Path
 
-from retarget_core.errors import RetargetError
+from retarget_core.errors import InputError, RetargetError
 
 from .schemas import JobState
 from .settings import Settings
@@ -110,6 +110,8 @@ def run_job(store: Store, job_id: str, settings: Settings, *, parent: int | None
             if asset is None:  # checked at submission; only a damaged store gets here
                 raise RetargetError(f"{field}: asset {asset_id} is gone from the store")
             paths[field] = store.asset_path(asset)
+            if field == "rig":
+                rig_asset = asset
             if kind == "rig":  # the stored rig is one flat layer: it may compose no other file
                 from retarget_core.rig.usd_io import check_confined_layers
 
@@ -127,7 +129,16 @@ def run_job(store: Store, job_id: str, settings: Settings, *, parent: int | None
         # the store's folders are named relative to the data directory, as everywhere the client sees
         result.provenance["executor"]["atlas_cache"] = str(store.paths.atlas_cache.relative_to(store.paths.root))
         progress("writing", 0, 1)
-        result.write(out)
+        if request.rig_asset_path is not None:
+            # the layer composes over the user's own USD file, placed where they said
+            imported = str(rig_asset.info.get("imported_from", ""))
+            if imported and Path(imported).suffix.lower() not in (".usda", ".usdc", ".usd", ".usdz"):
+                raise InputError("rig_asset_path: the rig was not uploaded as a USD file (a robot bundle is "
+                                 "kept as the imported rig.usda, which the layer composes over by default)",
+                                 element="rig_asset_path")
+            result.write(out, paths["rig"], rig_asset_path=request.rig_asset_path)
+        else:
+            result.write(out)
         _write_usdc(out)
         if request.evaluate:
             from retarget_core.evaluate.report import write_evaluation

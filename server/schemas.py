@@ -76,6 +76,11 @@ class ProposeRequest(BaseModel):
                                    description="default: the demo source hand (what demo clips are made with)")
 
 
+#: a relative asset path to a USD file: segments start with a letter, digit or "_" (so no
+#: leading "/", no ".." and no hidden names), no scheme, no backslash
+RIG_ASSET_PATH = r"^[A-Za-z0-9_][A-Za-z0-9_.-]*(/[A-Za-z0-9_][A-Za-z0-9_.-]*)*\.(usda|usdc|usd)$"
+
+
 class JobCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
     clip: str = Field(pattern=SHA256)
@@ -88,6 +93,11 @@ class JobCreate(BaseModel):
     evaluate: bool = Field(default=True, description="also write metrics.json and the report's plots")
     frames: tuple[StrictInt, StrictInt] | None = Field(
         default=None, description="[start, end) frames of the clip to retarget (end excluded); null: the whole clip")
+    rig_asset_path: str | None = Field(
+        default=None, max_length=300, pattern=RIG_ASSET_PATH,
+        description="the path animation.usda sublayers for the rig, as you will place it (relative to "
+                    "animation.usda, e.g. 'hand.usda' or 'assets/hand.usda'): the layer then composes over "
+                    "your own USD rig file; null: over the job's rig.usda. Only for a rig uploaded as USD")
 
     @field_validator("frames")
     @classmethod

@@ -301,8 +301,13 @@ def write_animation_usd(
     object_faces=None,
     object_poses=None,
     metadata: dict | None = None,
+    sublayer_path: str | None = None,
 ) -> None:
     """Write the result layer (.usda / .usdc / .usd) atomically; see the module docstring.
+
+    sublayer_path: the asset path the layer sublayers, as written (e.g. the user's own file's
+    name where the layer will sit beside it), instead of ``rig_file`` relative to the output
+    folder; ``rig_file`` is still what the skeleton is read from.
 
     rig_file: the rig's USD file (written by ``write_rig_usd``), sublayered by a path relative
     to the output folder; None writes the rig itself into the layer. dof_curves: one curve per
@@ -329,7 +334,7 @@ def write_animation_usd(
         root_name, skel_path, tokens = target.root_name, target.skel_path, target.tokens
         stage = Usd.Stage.CreateInMemory()
         out_dir = path.resolve().parent
-        sublayer = os.path.relpath(rig_path.resolve(), out_dir).replace(os.sep, "/")
+        sublayer = sublayer_path or os.path.relpath(rig_path.resolve(), out_dir).replace(os.sep, "/")
         skel_prim = stage.OverridePrim(skel_path)
         root_prim = stage.GetPrimAtPath(f"/{root_name}")
         stage.SetDefaultPrim(root_prim)

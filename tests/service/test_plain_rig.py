@@ -8,6 +8,8 @@ import json
 
 import pytest
 
+from dcc_client.client import ServiceError
+
 from plain_usd import write_plain_usdskel
 from retarget_core.rig.usd_io import read_rig_usd
 from retarget_core.transfer.annotations import save_annotations
@@ -43,3 +45,46 @@ def test_a_plain_usdskel_hand_is_accepted_and_retargets(dana, inputs, tmp_path):
     doc = json.loads(dana.artifact(final["id"], "result.json"))
     assert doc["dof_names"] == rig.dof_names
     assert b"SkelAnimation" in dana.artifact(final["id"], "animation.usda")
+
+
+def test_the_layer_composes_over_the_users_own_file_placed_where_they_say(dana, inputs, tmp_path):
+    """rig_asset_path: animation.usda sublayers the user's file by that path; placed beside it,
+    USD's own skinning of the composed stage follows the core's rig (1e-5 m)."""
+    import shutil
+
+    import numpy as np
+    from pxr import Usd
+
+    from plain_usd import Z_UP_TO_Y_UP, skinned_world_points
+    from retarget_core.export import read_dof_bsplines
+
+    target = inputs["target"]
+    path = write_plain_usdskel(
+        tmp_path / "my_hand.usda", joint_names=target.joint_names, parents=[j.parent for j in target.joints],
+        bind_world=target.kinematics().bind_world, vertices=target.surface.vertices, faces=target.surface.faces,
+        joint_indices=target.surface.joint_indices, joint_weights=target.surface.joint_weights,
+        meters_per_unit=0.01, up_axis="Y")
+    rig = read_rig_usd(path)
+    annotations = tmp_path / "annotations.json"
+    save_annotations(propose(inputs["source"], rig).annotations, annotations)
+    ids = {"clip": dana.upload("clip", inputs["clip"])["id"], "rig": dana.upload("rig", path)["id"],
+           "annotations": dana.upload("annotations", annotations)["id"]}
+    with pytest.raises(ServiceError, match="422"):
+        dana.submit(**ids, overrides=FAST, evaluate=False, rig_asset_path="../outside.usda")
+    final = dana.wait(dana.submit(**ids, overrides=FAST, evaluate=False, rig_asset_path="assets/my_hand.usda")["id"],
+                      timeout=600, poll=0.2)
+    assert final["state"] == "succeeded", final["error"]
+    scene = tmp_path / "scene"
+    (scene / "assets").mkdir(parents=True)
+    shutil.copy(path, scene / "assets" / "my_hand.usda")
+    layer = scene / "animation.usda"
+    layer.write_bytes(dana.artifact(final["id"], "animation.usda"))
+    stage = Usd.Stage.Open(str(layer))  # held: its layer expires with it
+    assert [str(p) for p in stage.GetRootLayer().subLayerPaths] == ["assets/my_hand.usda"]
+    assert b"SkelRoot" in dana.artifact(final["id"], "rig.usda")  # kept as well
+    curves = read_dof_bsplines(layer)
+    doc = json.loads(dana.artifact(final["id"], "result.json"))
+    for frame in (0, len(doc["times"]) - 1):
+        q = np.array([float(curves[n](frame / doc["fps"])) for n in rig.dof_names])
+        usd = skinned_world_points(layer, time=frame) * 0.01 @ Z_UP_TO_Y_UP[:3, :3]
+        assert np.abs(usd - rig.kinematics().skin(q)).max() <= 1e-5
