@@ -69,14 +69,19 @@ class RetargetClient:
     def health(self) -> dict:
         return self._request("GET", "/v1/health")
 
-    def upload(self, kind: str, path, *, name: str | None = None) -> dict:
-        """Upload a file as an asset of ``kind`` ("rig", "annotations", "clip", "file")."""
+    def upload(self, kind: str, path, *, name: str | None = None, root_body: str | None = None,
+               hand_root: str | None = None) -> dict:
+        """Upload a file as an asset of ``kind`` ("rig", "annotations", "clip", "file"). For a
+        rig: ``root_body`` picks the hand in an MJCF model (a bundle), ``hand_root`` the hand
+        inside a USD character's skeleton."""
         path = Path(path)
-        return self.upload_bytes(kind, path.read_bytes(), name or path.name)
+        return self.upload_bytes(kind, path.read_bytes(), name or path.name, root_body=root_body, hand_root=hand_root)
 
-    def upload_bytes(self, kind: str, data: bytes, name: str) -> dict:
+    def upload_bytes(self, kind: str, data: bytes, name: str, *, root_body: str | None = None,
+                     hand_root: str | None = None) -> dict:
+        query = {"name": name} | {k: v for k, v in (("root_body", root_body), ("hand_root", hand_root)) if v}
         return self._request("POST", f"/v1/assets/{kind}", body=data, content_type="application/octet-stream",
-                             query={"name": name})
+                             query=query)
 
     def _pages(self, path: str, key: str, query: dict, limit: int | None):
         """Every item of a paged list (following ``next_cursor``)."""

@@ -59,10 +59,21 @@ def annotations_info(ann) -> dict:
             "curves": len(ann.curves)}
 
 
-def validate_upload(kind: str, tmp: Path, filename: str, *, scratch: Path, bundle_bytes: int) -> tuple[Path, str, dict]:
+def stored_rig_options(info: dict) -> dict:
+    """The loader options a stored rig is read with at every use (``hand_root`` of a USD rig,
+    kept in its info as ``load_options``; a robot bundle's ``root_body`` was applied at import)."""
+    return dict(info.get("load_options") or {})
+
+
+def validate_upload(kind: str, tmp: Path, filename: str, *, scratch: Path, bundle_bytes: int,
+                    rig_options: dict | None = None) -> tuple[Path, str, dict]:
     """Check the upload at ``tmp`` (no suffix) as a ``kind`` asset. Returns (path to move to the
-    content address, its suffix, info). Raises :class:`UploadError` naming the problem; the
-    caller removes what is left under ``scratch``."""
+    content address, its suffix, info). ``rig_options``: ``root_body`` (an MJCF hand in a
+    bundle) and ``hand_root`` (a hand inside a USD character), None values left out. Raises
+    :class:`UploadError` naming the problem; the caller removes what is left under ``scratch``."""
+    options = {k: v for k, v in (rig_options or {}).items() if v is not None}
+    if options and kind != "rig":
+        raise UploadError(f"{', '.join(sorted(options))} only apply to rig uploads")
     head = tmp.open("rb").read(16)
     if kind == "annotations":
         from retarget_core.transfer.annotations import load_annotations
@@ -95,10 +106,11 @@ def validate_upload(kind: str, tmp: Path, filename: str, *, scratch: Path, bundl
             path = tmp.rename(tmp.with_suffix(suffix))
             flat = scratch / f"rig{suffix}"
             warnings = _core(lambda p: flatten_confined(p, flat), path, scratch=scratch, name=filename)
-            info = rig_info(_core(lambda p: load_rig(p, confine_to=p), flat, scratch=scratch, name=filename))
+            info = rig_info(_core(lambda p: load_rig(p, confine_to=p, **options), flat, scratch=scratch, name=filename))
             tmp.with_suffix(suffix).unlink(missing_ok=True)
             warnings = [w.replace(path.name, filename) for w in warnings]
-            return flat, suffix, info | ({"warnings": warnings} if warnings else {})
+            return flat, suffix, info | ({"warnings": warnings} if warnings else {}) | (
+                {"load_options": options} if options else {})
         folder = scratch / "bundle"
         entry = _unpack_bundle(tmp, folder, bundle_bytes)
         shown = entry.relative_to(folder).as_posix()
@@ -107,15 +119,16 @@ def validate_upload(kind: str, tmp: Path, filename: str, *, scratch: Path, bundl
             # A .usdz / zip USD package: composed with every layer confined to the package.
             flat = scratch / "rig.usdc"
             warnings = _core(lambda p: flatten_confined(p, flat, confine_to=folder), entry, scratch=scratch)
-            info = rig_info(_core(lambda p: load_rig(p, confine_to=p), flat, scratch=scratch, name=filename))
-            return flat, ".usdc", info | {"imported_from": shown} | ({"warnings": warnings} if warnings else {})
+            info = rig_info(_core(lambda p: load_rig(p, confine_to=p, **options), flat, scratch=scratch, name=filename))
+            return flat, ".usdc", info | {"imported_from": shown} | ({"warnings": warnings} if warnings else {}) | (
+                {"load_options": options} if options else {})
         # A robot bundle: unpacked safely, imported with every file it names confined to the
         # bundle (wrapper surface built once, here), and kept as the USD rig the jobs read, so
         # every job sees the same surface the annotations name.
-        rig = _core(lambda p: load_rig(p, confine_to=folder), entry, scratch=scratch)
+        rig = _core(lambda p: load_rig(p, confine_to=folder, **options), entry, scratch=scratch)
         usd = scratch / "rig.usda"
         save_rig(rig, usd)
-        return usd, ".usda", rig_info(rig) | {"imported_from": shown}
+        return usd, ".usda", rig_info(rig) | {"imported_from": shown} | ({"import_options": options} if options else {})
     raise UploadError(f"unknown asset kind {kind!r} (known: {', '.join(KINDS)})")
 
 

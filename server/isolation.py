@@ -54,14 +54,15 @@ class ValidatorCrashed(Exception):
 # ---- upload validation in a child process -----------------------------------------------------
 
 def validate_isolated(kind: str, tmp: Path, filename: str, *, scratch: Path, bundle_bytes: int,
-                      memory_bytes: int, interval: float = 0.05):
+                      memory_bytes: int, interval: float = 0.05, rig_options: dict | None = None):
     """:func:`server.assets.validate_upload` in a child process limited to ``memory_bytes``;
     returns its (path, suffix, info). Raises :class:`server.assets.UploadError` as the
     validator did, :class:`MemoryLimitExceeded` past the limit, :class:`ValidatorCrashed` when
     the child died otherwise."""
     tmp = Path(tmp).resolve()
     result = _run_child({"task": "validate", "kind": kind, "tmp": str(tmp), "filename": filename,
-                         "bundle_bytes": int(bundle_bytes), "max_clip_bytes": int(memory_bytes)},
+                         "bundle_bytes": int(bundle_bytes), "max_clip_bytes": int(memory_bytes),
+                         "rig_options": dict(rig_options or {})},
                         scratch=scratch, memory_bytes=memory_bytes, interval=interval, what=f"{kind} {filename!r}")
     return Path(result["path"]), result["suffix"], result["info"]
 
@@ -181,7 +182,7 @@ def _validate(req: dict) -> dict:
         except InputError as err:
             raise UploadError(str(err)) from err
     path, suffix, info = validate_upload(req["kind"], tmp, req["filename"], scratch=Path(req["scratch"]),
-                                         bundle_bytes=req["bundle_bytes"])
+                                         bundle_bytes=req["bundle_bytes"], rig_options=req.get("rig_options"))
     return {"path": str(path), "suffix": suffix, "info": info}
 
 

@@ -122,8 +122,10 @@ def run_job(store: Store, job_id: str, settings: Settings, *, parent: int | None
                             atlas_cache=store.paths.atlas_cache, progress=progress)
         progress("loading", 0, 1)
         # source_rig None: load_inputs takes the demo hand the clip names, and refuses anything else
+        from .assets import stored_rig_options
+
         inputs = load_inputs(paths["clip"], paths["rig"], paths["annotations"], source_rig=paths.get("source_rig"),
-                             frames=request.frames)
+                             frames=request.frames, target_options=stored_rig_options(rig_asset.info))
         _asset_provenance(inputs.sources, request)
         result = retarget(inputs, config, executor)
         # the store's folders are named relative to the data directory, as everywhere the client sees

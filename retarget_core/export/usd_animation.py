@@ -226,6 +226,7 @@ def _skeleton_target(rig: Rig, rig_file: Path) -> _SkeletonTarget:
                          element=f"{skel.GetPath()}.joints")
     index = {n: i for i, n in enumerate(rig.joint_names)}
     order = np.array([index.get(n, -1) for n in names], dtype=np.int64)
+    # the free root the reader added is in a rig file written from the rig, not in the user's
     expected = set(range(rig.n_joints)) - ({index[added]} if added in index else set())
     missing = sorted(expected - set(order.tolist()))
     if missing or (np.any(order < 0) and not cut):
@@ -236,9 +237,6 @@ def _skeleton_target(rig: Rig, rig_file: Path) -> _SkeletonTarget:
             source=src,
             element=f"{skel.GetPath()}.joints",
         )
-    if added and index.get(added, -2) in order:
-        raise InputError(f"the rig file has a joint named like the added free root {added!r}", source=src,
-                         element="joints")
     parents = np.array(_parents_from_paths(tokens, src=src, element=f"{skel.GetPath()}.joints"), dtype=np.int64)
     scale, placed = _prim_placement(skel.GetPrim(), src=src)
     rest_skel = None

@@ -13,7 +13,7 @@ from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, Res
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
-from ..assets import UploadError, annotations_info
+from ..assets import UploadError, annotations_info, stored_rig_options
 from ..isolation import MIB, MemoryLimitExceeded, ValidatorCrashed, import_grab_isolated, validate_isolated
 from ..deps import current_owner, decode_cursor, encode_cursor, get_settings, get_store, require_intact
 from ..schemas import DEFAULT_PAGE, MAX_PAGE, SHA256, Asset, AssetKind, AssetList, GrabImport, Problem, ProposeRequest
@@ -77,7 +77,8 @@ async def _receive(request: Request, store: Store, limit: int, timeout: float | 
 
 
 def _store_validated(store: Store, owner: str, kind: str, name: str, tmp, sha: str, size: int,
-                     settings: Settings) -> tuple[AssetRow, bool]:
+                     settings: Settings, rig_options: dict | None = None) -> tuple[AssetRow, bool]:
+    options = {k: v for k, v in (rig_options or {}).items() if v is not None}
     # Only the caller's own identical upload is returned as is (and only while its blob is
     # intact: otherwise this upload repairs it). Another owner's identical upload is never
     # looked at: it would show in the timing and the info; the blob store keeps one copy.
@@ -86,6 +87,12 @@ def _store_validated(store: Store, owner: str, kind: str, name: str, tmp, sha: s
         tmp.unlink(missing_ok=True)
         raise HTTPException(409, f"you uploaded these bytes as a {PurePath(mine.path).suffix} file before (asset "
                                  f"{sha}); delete that asset to upload them as {PurePath(name).suffix or 'no suffix'}")
+    if mine is not None and kind == "rig":
+        before = mine.info.get("load_options") or mine.info.get("import_options") or {}
+        if before != options:
+            tmp.unlink(missing_ok=True)
+            raise HTTPException(409, f"you uploaded these bytes as a rig with options {before or 'none'} before "
+                                     f"(asset {sha}); delete that asset to upload them with {options or 'none'}")
     if mine is not None and store.blob_problem(store.asset_path(mine)) is None:
         tmp.unlink(missing_ok=True)
         return mine, False
@@ -98,7 +105,7 @@ def _store_validated(store: Store, owner: str, kind: str, name: str, tmp, sha: s
             check_zip(tmp, max_bytes=4 * settings.max_upload_bytes)
         # in a child process with a memory limit: a hostile upload never grows the server
         path, ext, info = validate_isolated(kind, tmp, name, scratch=scratch, bundle_bytes=4 * settings.max_upload_bytes,
-                                            memory_bytes=settings.validation_memory_mb * MIB)
+                                            memory_bytes=settings.validation_memory_mb * MIB, rig_options=options)
         final = store.put_blob(path, sha, ext)
         return store.add_asset(owner, sha, kind, name, size, final, info)
     finally:
@@ -112,6 +119,11 @@ def _store_validated(store: Store, owner: str, kind: str, name: str, tmp, sha: s
                  "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}}})
 async def upload_asset(request: Request, response: Response, kind: AssetKind,
                        name: str = Query(..., min_length=1, max_length=200, description="the file's name"),
+                       root_body: str | None = Query(None, min_length=1, max_length=200,
+                                                     description="rig bundle with an MJCF hand: the hand's root body"),
+                       hand_root: str | None = Query(None, min_length=1, max_length=200,
+                                                     description="USD rig: the hand's root joint inside a larger "
+                                                                 "skeleton (default: found)"),
                        owner: str = Depends(current_owner), store: Store = Depends(get_store),
                        settings: Settings = Depends(get_settings)):
     """Upload a rig (USD, or a zip of a URDF / MJCF hand), annotations (JSON), a clip (npz) or
@@ -125,7 +137,8 @@ async def upload_asset(request: Request, response: Response, kind: AssetKind,
                                  f"{settings.storage_quota_bytes} bytes (--storage-quota-mb): delete assets or jobs "
                                  "(DELETE /v1/assets/{id}, DELETE /v1/jobs/{id})")
     try:
-        asset, created = await run_in_threadpool(_store_validated, store, owner, kind, name, tmp, sha, size, settings)
+        asset, created = await run_in_threadpool(_store_validated, store, owner, kind, name, tmp, sha, size, settings,
+                                                 {"root_body": root_body, "hand_root": hand_root})
     except UploadError as err:
         raise HTTPException(422, f"not a valid {kind}: {err}") from err
     except MemoryLimitExceeded as err:
@@ -242,14 +255,15 @@ def propose(body: ProposeRequest, response: Response, owner: str = Depends(curre
     from retarget_core.transfer.annotations import save_annotations, with_positions
     from retarget_core.transfer.propose import propose_annotations
 
-    def stored_rig(path):  # a stored rig is one flat layer: it may compose no other file
-        return load_rig(path, confine_to=path)
+    def stored_rig(asset):  # a stored rig is one flat layer: it may compose no other file
+        path = store.asset_path(asset)
+        return load_rig(path, confine_to=path, **stored_rig_options(asset.info))
 
     target_asset = owned(store, owner, body.target_rig, "rig", "target_rig")
-    source_path = store.asset_path(owned(store, owner, body.source_rig, "rig", "source_rig")) if body.source_rig else None
+    source_asset = owned(store, owner, body.source_rig, "rig", "source_rig") if body.source_rig else None
     try:
-        source = stored_rig(source_path) if source_path is not None else resolve_rig(DEFAULT_SOURCE_RIG)
-        target = stored_rig(store.asset_path(target_asset))
+        source = stored_rig(source_asset) if source_asset is not None else resolve_rig(DEFAULT_SOURCE_RIG)
+        target = stored_rig(target_asset)
         annotations = with_positions(propose_annotations(source, target), source, target)  # survive mesh edits
     except InputError as err:
         raise HTTPException(422, f"cannot propose annotations: {err}") from err

@@ -88,3 +88,26 @@ def test_the_layer_composes_over_the_users_own_file_placed_where_they_say(dana, 
         q = np.array([float(curves[n](frame / doc["fps"])) for n in rig.dof_names])
         usd = skinned_world_points(layer, time=frame) * 0.01 @ Z_UP_TO_Y_UP[:3, :3]
         assert np.abs(usd - rig.kinematics().skin(q)).max() <= 1e-5
+
+
+def test_a_character_with_two_hands_is_uploaded_with_the_hand_root(dana, inputs, tmp_path):
+    """Two hands in one skeleton: the upload says so and how to settle it; with ``hand_root``
+    it is stored, proposed on and retargeted with that hand, and the same bytes with other
+    options are refused (409) rather than silently reused."""
+    from test_plain_usd import _body_arrays
+
+    target = inputs["target"]
+    path = write_plain_usdskel(tmp_path / "two_hands.usda", **_body_arrays(target, hands=2))
+    with pytest.raises(ServiceError, match=r"422.*2 hands.*--hand-root"):
+        dana.upload("rig", path)
+    second = target.joint_names[0] + "_1"
+    asset = dana.upload("rig", path, hand_root=second)
+    local = read_rig_usd(path, hand_root=second)
+    assert asset["info"]["load_options"] == {"hand_root": second} and asset["info"]["dofs"] == local.n_dofs
+    with pytest.raises(ServiceError, match="409"):
+        dana.upload("rig", path, hand_root=target.joint_names[0])
+    proposed = dana.propose_annotations(asset["id"])
+    ids = {"clip": dana.upload("clip", inputs["clip"])["id"], "rig": asset["id"], "annotations": proposed["id"]}
+    final = dana.wait(dana.submit(**ids, overrides=FAST, evaluate=False)["id"], timeout=600, poll=0.2)
+    assert final["state"] == "succeeded", final["error"]
+    assert json.loads(dana.artifact(final["id"], "result.json"))["dof_names"] == local.dof_names
