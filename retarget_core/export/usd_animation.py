@@ -238,7 +238,9 @@ def _skeleton_target(rig: Rig, rig_file: Path) -> _SkeletonTarget:
             element=f"{skel.GetPath()}.joints",
         )
     parents = np.array(_parents_from_paths(tokens, src=src, element=f"{skel.GetPath()}.joints"), dtype=np.int64)
-    scale, placed = _prim_placement(skel.GetPrim(), src=src)
+    # a rig file with the DOF spec is read in its Skeleton's space (rig/usd_io.read_rig_usd)
+    spec = skel.GetPrim().GetAttribute("handretarget:specVersion")
+    scale, placed = (1.0, np.eye(4)) if spec and spec.HasAuthoredValue() else _prim_placement(skel.GetPrim(), src=src)
     rest_skel = None
     if np.any(order < 0):
         rest_skel = _rest_in_skel_space(skel, parents)

@@ -646,9 +646,10 @@ def read_rig_usd(path, *, confine_to=None, mapping=None, hand_root=None) -> Rig:
     jointWeights, geomBindTransform), whose DOFs are then inferred by role from the hand model
     (:func:`~retarget_core.rig.dof_roles.infer_dofs`, settled by ``mapping``, a
     :class:`~retarget_core.rig.hand_model.HandMapping`, when the hand model cannot tell) with a
-    free root added around the skeleton's own root joint. The Skeleton prim's world transform
-    (its ancestors' xformOps included; uniform scale allowed), metersPerUnit and upAxis Y or Z
-    are applied: the rig is in metres, Z-up, world. A plain file whose skeleton is more than the
+    free root added around the skeleton's own root joint. metersPerUnit and upAxis Y or Z are
+    applied, and for a plain file the Skeleton prim's world transform (its ancestors' xformOps
+    included; uniform scale allowed): the rig is in metres, Z-up, world (a file with the DOF
+    spec stays in its Skeleton's space, where its free root is defined). A plain file whose skeleton is more than the
     hand (a character's body) gives its hand (:func:`~retarget_core.rig.hand_cut.cut_hand`:
     below ``hand_root``, or found where the fingers branch). Joint matrices must be rigid within
     |R^T R - I| <= 1e-5 and 1e-6 on the last row (float32 files pass) and are re-orthonormalised.
@@ -717,7 +718,9 @@ def read_rig_usd(path, *, confine_to=None, mapping=None, hand_root=None) -> Rig:
         raise InputError("this rig file carries a handretarget DOF spec: it is a hand rig already, there is no "
                          "hand to cut out (drop --hand-root)", source=src, element="hand_root")
     dofs = dofs or []
-    placement = _prim_placement(prim, src=src)
+    # A plain file is placed in its stage's world; a rig with the DOF spec is in its Skeleton's
+    # space (the add-in writes the armature's object space and its free root there).
+    placement = _prim_placement(prim, src=src) if plain else (1.0, np.eye(4))
 
     surface_prim, visual_prim, bound = _find_meshes(stage, skel)
     if surface_prim is None:
@@ -749,7 +752,7 @@ def read_rig_usd(path, *, confine_to=None, mapping=None, hand_root=None) -> Rig:
 
     # The Skeleton prim's own world transform (its xformOps and every ancestor's: a SkelRoot
     # placed in a scene) carries the skeleton and, by UsdSkel's rules, the skinned points; the
-    # bound Mesh's own transform does not take part in skinning.
+    # bound Mesh's own transform does not take part in skinning (plain files only, see above).
     s_uniform, placed = placement
     if s_uniform != 1.0 or not np.allclose(placed, np.eye(4), atol=1e-12):
         root = parents_new.index(-1)
