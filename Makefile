@@ -34,7 +34,7 @@ demo: setup
 	$(BIN)/handretarget demo --out $(DEMO_OUT)
 
 test: setup
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest --durations=15
 	HANDRETARGET_REQUIRE_BLENDER=1 $(BLENDER_VENV)/bin/python -m pytest dcc_client/tests_blender
 
 extension: setup
