@@ -265,6 +265,28 @@ def test_a_layer_over_a_hand_placed_anywhere_moves_its_own_root_joint(hand, tmp_
         assert np.abs(usd_points - rig.kinematics().skin(q_f)).max() <= 1e-5, frame
 
 
+def test_a_separate_shell_in_the_mesh_is_left_out_with_a_warning(hand, core, tmp_path, capsys):
+    """A nail modelled as its own closed shell: the hand is the largest piece, said by rig info."""
+    arrays = _arrays(hand)
+    tip = hand.surface.vertices[np.argmax(hand.surface.vertices[:, 1])]
+    nail = tip + np.array([[x, y, z] for x in (-0.003, 0.003) for y in (-0.004, 0.0) for z in (0.0, 0.002)])
+    box = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6],
+                    [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    n = len(arrays["vertices"])
+    k = arrays["joint_indices"].shape[1]
+    arrays["vertices"] = np.vstack([arrays["vertices"], nail])
+    arrays["faces"] = np.vstack([arrays["faces"], box + n])
+    arrays["joint_indices"] = np.vstack([arrays["joint_indices"], np.repeat(arrays["joint_indices"][[0]], 8, axis=0)])
+    arrays["joint_weights"] = np.vstack([arrays["joint_weights"], np.column_stack([np.ones(8), np.zeros((8, k - 1))])])
+    path = write_plain_usdskel(tmp_path / "nail.usda", **arrays)
+    rig = read_rig_usd(path)
+    assert rig.surface.n_vertices == core.surface.n_vertices
+    assert np.abs(rig.surface.vertices - core.surface.vertices).max() <= 1e-6
+    assert "left out 8 vertices and 12 faces" in rig.metadata["warnings"][0]
+    assert main(["rig", "info", str(path)]) == 0
+    assert "warning: the surface mesh has more than one piece" in capsys.readouterr().out
+
+
 def test_bad_plain_files_are_refused_naming_prim_joint_and_number(hand, tmp_path):
     from pxr import Gf, Usd, UsdSkel
 

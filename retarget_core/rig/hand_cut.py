@@ -163,3 +163,23 @@ def _cap_openings(vertices, faces, weights):
         new_f.append(np.stack([np.roll(loop, -1), loop, np.full(len(loop), n)], axis=1))
         n += 1
     return np.concatenate(new_v), np.concatenate(new_f), np.concatenate(new_w)
+
+
+def keep_main_shell(rig: Rig) -> Rig:
+    """``rig`` with only the largest connected piece of its surface when the surface has
+    several (nails, buttons, separate shells a DCC mesh often carries); what was dropped is
+    recorded in ``metadata["warnings"]``. The rig itself when the surface is one piece."""
+    surface = rig.surface
+    tagged, faces = largest_component(np.column_stack([surface.vertices, np.arange(surface.n_vertices)]),
+                                      surface.faces)
+    if len(faces) == len(surface.faces):
+        return rig
+    used = tagged[:, 3].astype(np.int64)
+    dropped_faces = len(surface.faces) - len(faces)
+    kept = SkinnedMesh(vertices=tagged[:, :3], faces=faces, joint_indices=surface.joint_indices[used],
+                       joint_weights=surface.joint_weights[used])
+    warning = (f"the surface mesh has more than one piece: kept the largest ({len(faces)} faces), "
+               f"left out {surface.n_vertices - len(used)} vertices and {dropped_faces} faces of the others "
+               "(nails or separate shells take no part in contacts)")
+    return Rig(name=rig.name, joints=list(rig.joints), dofs=list(rig.dofs), surface=kept, visual=rig.visual,
+               metadata={**rig.metadata, "warnings": list(rig.metadata.get("warnings", [])) + [warning]})

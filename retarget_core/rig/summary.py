@@ -56,6 +56,8 @@ def format_rig_info(rig: Rig, source: str = "") -> str:
     lines.append(f"  joints: {s['n_joints']}   DOFs: {s['n_dofs']}")
     if rig.metadata.get("dof_source"):
         lines.append(f"  DOFs: {rig.metadata['dof_source']}")
+    for warning in rig.metadata.get("warnings", []):
+        lines.append(f"  warning: {warning}")
     if rig.metadata.get("free_root_added"):
         lines.append(f"  free root: joint {rig.metadata['free_root_added']!r} added above the skeleton's own root")
     for joint in s["joints"]:

@@ -836,9 +836,9 @@ def read_rig_usd(path, *, confine_to=None, mapping=None, hand_root=None) -> Rig:
         # the free root around its own root joint and DOFs by role from the hand model
         # (dof_roles), which says what it cannot tell.
         from .dof_roles import infer_dofs
-        from .hand_cut import cut_hand
+        from .hand_cut import cut_hand, keep_main_shell
 
-        rig = cut_hand(rig, hand_root)
+        rig = keep_main_shell(cut_hand(rig, hand_root))
         rig.validate(source=src)
 
         try:
