@@ -287,6 +287,16 @@ def test_a_separate_shell_in_the_mesh_is_left_out_with_a_warning(hand, core, tmp
     assert "warning: the surface mesh has more than one piece" in capsys.readouterr().out
 
 
+def test_rig_demo_plain_writes_a_plain_file_that_reads_with_dofs_by_role(tmp_path, capsys):
+    assert main(["rig", "demo", "--plain", "--hand", "human_alt", "--resolution", "0.01", "--out", str(tmp_path)]) == 0
+    path = tmp_path / "human_alt.usda"
+    assert "handretarget" not in path.read_text()
+    assert check_usd_compliance(path) == []
+    rig = read_rig_usd(path)
+    assert "inferred by role" in rig.metadata["dof_source"] and rig.dof_names[:6] == ["root_tx", "root_ty", "root_tz",
+                                                                                        "root_rx", "root_ry", "root_rz"]
+
+
 def test_bad_plain_files_are_refused_naming_prim_joint_and_number(hand, tmp_path):
     from pxr import Gf, Usd, UsdSkel
 

@@ -13,6 +13,8 @@ def add_commands(sub) -> None:
     rig_demo.add_argument("--out", required=True, help="output folder")
     rig_demo.add_argument("--hand", action="append", help="only this demo hand (repeatable)")
     rig_demo.add_argument("--resolution", type=float, default=0.002, help="mesh cell size in metres")
+    rig_demo.add_argument("--plain", action="store_true",
+                          help="write plain UsdSkel (no DOF spec), as another tool's exporter would")
     rig_demo.set_defaults(func=_cmd_rig_demo)
     rig_hand = rig_sub.add_parser("hand", help="what the hand model reads from a rig: palm, fingers, thumb, "
                                                 "handedness, parts that are not the hand")
@@ -60,9 +62,15 @@ def _cmd_rig_demo(args) -> int:
     for name in names:
         rig = demo_hand(name, resolution=args.resolution)
         path = out / f"{name}.usda"
-        save_rig(rig, path)
+        if args.plain:
+            from ..rig.usd_io import write_rig_usd
+
+            write_rig_usd(rig, path, dof_spec=False)
+        else:
+            save_rig(rig, path)
         report = rig.surface.topology()
-        rows.append((name, rig.n_dofs, rig.surface.n_vertices, len(rig.surface.faces), report.describe(), path))
+        rows.append((name, "-" if args.plain else rig.n_dofs, rig.surface.n_vertices, len(rig.surface.faces),
+                     report.describe(), path))
     print(f"{'hand':<17} {'DOFs':>4} {'vertices':>9} {'faces':>7}  surface")
     for name, n_dofs, nv, nf, topo, path in rows:
         print(f"{name:<17} {n_dofs:>4} {nv:>9} {nf:>7}  {topo}  -> {path}")

@@ -95,7 +95,8 @@ def _usd_matrices(mats: np.ndarray):
     return Vt.Matrix4dArray.FromNumpy(np.ascontiguousarray(np.asarray(mats, dtype=np.float64).transpose(0, 2, 1)))
 
 
-def _write_mesh(stage, path: str, mesh: SkinnedMesh, skeleton, *, purpose: str, role: str, double_sided: bool):
+def _write_mesh(stage, path: str, mesh: SkinnedMesh, skeleton, *, purpose: str, role: str, double_sided: bool,
+                dof_spec: bool = True):
     Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt = _pxr()
     geom = UsdGeom.Mesh.Define(stage, path)
     points = np.asarray(mesh.vertices, dtype=np.float64)
@@ -108,7 +109,8 @@ def _write_mesh(stage, path: str, mesh: SkinnedMesh, skeleton, *, purpose: str, 
     lo, hi = points.min(axis=0), points.max(axis=0)
     geom.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
     geom.CreatePurposeAttr(purpose)
-    geom.GetPrim().CreateAttribute(_attr_name("role"), Sdf.ValueTypeNames.Token, custom=True).Set(role)
+    if dof_spec:
+        geom.GetPrim().CreateAttribute(_attr_name("role"), Sdf.ValueTypeNames.Token, custom=True).Set(role)
 
     binding = UsdSkel.BindingAPI.Apply(geom.GetPrim())
     binding.CreateSkeletonRel().SetTargets([skeleton.GetPath()])
@@ -123,7 +125,7 @@ def _write_mesh(stage, path: str, mesh: SkinnedMesh, skeleton, *, purpose: str, 
     return geom
 
 
-def _build_stage(rig: Rig):
+def _build_stage(rig: Rig, dof_spec: bool = True):
     Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt = _pxr()
     stage = Usd.Stage.CreateInMemory()
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
@@ -151,6 +153,10 @@ def _build_stage(rig: Rig):
         if doc:
             attr.SetDocumentation(doc)
 
+    if not dof_spec:  # plain UsdSkel, as a DCC writes it
+        _write_mesh(stage, f"/{root_name}/Surface", rig.surface, skel, purpose=UsdGeom.Tokens.default_,
+                    role="surface", double_sided=False, dof_spec=False)
+        return stage
     try:
         metadata_json = json.dumps(to_jsonable(rig.metadata), sort_keys=True)
     except (TypeError, ValueError) as exc:
@@ -175,14 +181,17 @@ def _build_stage(rig: Rig):
     return stage
 
 
-def write_rig_usd(rig: Rig, path) -> None:
+def write_rig_usd(rig: Rig, path, *, dof_spec: bool = True) -> None:
     """Write ``rig`` to a USD file (.usda text, .usdc or .usd crate), atomically: the file is
-    written next to its destination under a temporary name and then moved into place."""
+    written next to its destination under a temporary name and then moved into place.
+    ``dof_spec=False`` writes plain UsdSkel (skeleton and skinned surface, no ``handretarget:``
+    attribute, no visual mesh): what a DCC exporter writes, and what :func:`read_rig_usd`
+    gives DOFs by role."""
     path = Path(path)
     ext = path.suffix.lower()
     if ext not in _USD_EXTENSIONS:
         raise InputError(f"USD file name must end in {', '.join(_USD_EXTENSIONS)}", source=str(path))
-    stage = _build_stage(rig)
+    stage = _build_stage(rig, dof_spec=dof_spec)
     with atomic_path(path, suffix=ext) as tmp:
         if not stage.GetRootLayer().Export(str(tmp)):
             raise OSError(f"USD could not write {path}")
