@@ -124,10 +124,11 @@ class RetargetResult:
         rig = self.rig if self.rig is not None else load_rig(rig_path)
         paths = {}
         usd_rig = rig_path is not None and Path(str(rig_path)).suffix.lower() in USD_SUFFIXES
-        if rig_asset_path is not None and not (usd_rig and layers_over(rig, rig_path)):
+        over = usd_rig and layers_over(rig, rig_path)
+        if rig_asset_path is not None and not over:
             raise InputError("a rig asset path names the user's USD file the layer composes over; this rig "
                              "does not come from a USD file it can compose over", element="rig_asset_path")
-        if usd_rig and not layers_over(rig, rig_path):
+        if usd_rig and not over:
             rig_path = None  # the layer goes over a rig.usda written here
         if self.curves is not None:
             if rig_path is None or Path(str(rig_path)).suffix.lower() not in USD_SUFFIXES:
