@@ -43,9 +43,17 @@ def sniff_rig(head: bytes) -> str:
 
 
 def rig_info(rig) -> dict:
+    """What a client shows of a stored rig: counts, and each DOF's joint, kind and limits
+    (radians / metres; the add-in's panel lists them for editing) and where they came from."""
     surface = rig.surface
+    limits = [{"name": d.name, "joint": rig.joints[d.joint].name, "kind": d.kind, "lower": float(d.lower),
+               "upper": float(d.upper), "rest": float(d.rest)} for d in rig.dofs]
+    meta = rig.metadata
     return {"name": rig.name, "dofs": rig.n_dofs, "dof_names": list(rig.dof_names),
-            "vertices": int(surface.n_vertices), "faces": int(len(surface.faces))}
+            "vertices": int(surface.n_vertices), "faces": int(len(surface.faces)), "dof_limits": limits,
+            "dof_source": str(meta.get("dof_source", "the rig's DOF spec")),
+            "free_root_added": meta.get("free_root_added") or None,  # the joint name, when one was added
+            "rig_warnings": [str(w) for w in meta.get("warnings", [])]}
 
 
 def clip_info(clip) -> dict:

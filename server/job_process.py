@@ -81,6 +81,29 @@ class _Progress:
         self.store.update_job(self.job_id, only_if_state=RUNNING, **fields)
 
 
+def _rig_asset_path(request, rig_asset, result, rig_file) -> str | None:
+    """The path animation.usda sublayers for the rig: the request's ``rig_asset_path``, else the
+    rig upload's own file name (the layer then plays over the user's file placed beside it);
+    None (over the job's rig.usda) for a robot bundle or USD package, which were imported, or a
+    name that is not a plain relative USD path."""
+    import re
+
+    from retarget_core.export.usd_animation import layers_over
+
+    from .schemas import RIG_ASSET_PATH
+
+    imported = str(rig_asset.info.get("imported_from", ""))
+    if request.rig_asset_path is not None:
+        if imported and Path(imported).suffix.lower() not in (".usda", ".usdc", ".usd", ".usdz"):
+            raise InputError("rig_asset_path: the rig was not uploaded as a USD file (a robot bundle is "
+                             "kept as the imported rig.usda, which the layer composes over by default)",
+                             element="rig_asset_path")
+        return request.rig_asset_path
+    name = Path(str(rig_asset.name or "")).name
+    if imported or not re.fullmatch(RIG_ASSET_PATH, name) or not layers_over(result.rig, rig_file):
+        return None
+    return name
+
 def run_job(store: Store, job_id: str, settings: Settings, *, parent: int | None = None) -> JobState:
     """Run job ``job_id`` (state ``running``) to its final state; returns that state."""
     from retarget_core.execute import Executor
@@ -131,16 +154,7 @@ def run_job(store: Store, job_id: str, settings: Settings, *, parent: int | None
         # the store's folders are named relative to the data directory, as everywhere the client sees
         result.provenance["executor"]["atlas_cache"] = str(store.paths.atlas_cache.relative_to(store.paths.root))
         progress("writing", 0, 1)
-        if request.rig_asset_path is not None:
-            # the layer composes over the user's own USD file, placed where they said
-            imported = str(rig_asset.info.get("imported_from", ""))
-            if imported and Path(imported).suffix.lower() not in (".usda", ".usdc", ".usd", ".usdz"):
-                raise InputError("rig_asset_path: the rig was not uploaded as a USD file (a robot bundle is "
-                                 "kept as the imported rig.usda, which the layer composes over by default)",
-                                 element="rig_asset_path")
-            result.write(out, paths["rig"], rig_asset_path=request.rig_asset_path)
-        else:
-            result.write(out)
+        result.write(out, paths["rig"], rig_asset_path=_rig_asset_path(request, rig_asset, result, paths["rig"]))
         _write_usdc(out)
         if request.evaluate:
             from retarget_core.evaluate.report import write_evaluation

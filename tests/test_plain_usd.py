@@ -341,6 +341,36 @@ def test_limits_toml_round_trip_and_its_errors(core, tmp_path):
             apply_limits(core, edited)
 
 
+def test_limits_edited_in_the_file_itself_apply_to_the_inferred_dofs(files, core, tmp_path):
+    """The add-in writes a user's edited limits into the plain file (``handretarget:dofLimits``,
+    the TOML of ``rig import --limits``); only the DOFs it names change, and a bad entry is an
+    error naming the prim and the entry."""
+    import shutil
+
+    from pxr import Sdf, Usd, UsdSkel
+
+    def with_limits(text):
+        path = tmp_path / "limited.usda"
+        shutil.copy(files["plain"], path)
+        stage = Usd.Stage.Open(str(path))
+        skel = next(p for p in stage.Traverse() if p.IsA(UsdSkel.Skeleton))
+        skel.CreateAttribute("handretarget:dofLimits", Sdf.ValueTypeNames.String, custom=True).Set(text)
+        stage.GetRootLayer().Save()
+        return path
+
+    rig = read_rig_usd(with_limits("[index1]\nindex1_flex = [-10.0, 60.0]\n"))
+    d = rig.dofs[rig.dof_index("index1_flex")]
+    assert np.degrees([d.lower, d.upper]) == pytest.approx([-10.0, 60.0])
+    assert rig.dof_names == core.dof_names
+    def others(r):
+        return np.array([(x.lower, x.upper) for x in r.dofs if x.name != "index1_flex" and not x.name.startswith("root")])
+
+    np.testing.assert_allclose(others(rig), others(core), atol=1e-6)  # limits measured on the file's points
+    assert "dofLimits" in rig.metadata["limits_from"]
+    with pytest.raises(InputError, match=r"dofLimits.*no DOF 'index1_twist'"):
+        read_rig_usd(with_limits("[index1]\nindex1_twist = [-10.0, 60.0]\n"))
+
+
 # ---- the whole way: info, propose, retarget with no edit ----------------------------------------
 @pytest.fixture(scope="module")
 def clip_file(tmp_path_factory):

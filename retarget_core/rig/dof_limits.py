@@ -47,12 +47,22 @@ def limits_toml(rig: Rig) -> str:
 def apply_limits(rig: Rig, path) -> Rig:
     """A copy of ``rig`` with the limits of the TOML file ``path`` (see the module docstring)."""
     path = Path(path)
-    src = str(path)
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        text = path.read_text(encoding="utf-8")
     except FileNotFoundError as exc:
-        raise InputError("no such file", source=src) from exc
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError("no such file", source=str(path)) from exc
+    except UnicodeDecodeError as exc:
+        raise InputError(f"not a valid TOML file: {exc}", source=str(path)) from exc
+    return apply_limits_text(rig, text, source=str(path), label=path.name)
+
+
+def apply_limits_text(rig: Rig, text: str, *, source: str, label: str | None = None) -> Rig:
+    """A copy of ``rig`` with the limits of the TOML ``text`` (see the module docstring);
+    errors name ``source``; the rig's metadata records ``label`` as ``limits_from``."""
+    src = source
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
         raise InputError(f"not a valid TOML file: {exc}", source=src) from exc
     joints = {j.name: i for i, j in enumerate(rig.joints)}
     dofs = [replace(d, axis=np.array(d.axis, float)) for d in rig.dofs]
@@ -78,6 +88,6 @@ def apply_limits(rig: Rig, path) -> Rig:
                 raise InputError(f"the range [{pair[0]}, {pair[1]}] {unit} leaves out the DOF's rest value "
                                  f"{d.rest / scale:.4g} {unit}", source=src, element=el)
             d.lower, d.upper = lower, upper
-    out = replace(rig, dofs=dofs, metadata={**rig.metadata, "limits_from": path.name})
+    out = replace(rig, dofs=dofs, metadata={**rig.metadata, "limits_from": label or source})
     out.validate(source=src)
     return out

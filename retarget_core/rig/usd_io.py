@@ -655,7 +655,9 @@ def read_rig_usd(path, *, confine_to=None, mapping=None, hand_root=None) -> Rig:
     jointWeights, geomBindTransform), whose DOFs are then inferred by role from the hand model
     (:func:`~retarget_core.rig.dof_roles.infer_dofs`, settled by ``mapping``, a
     :class:`~retarget_core.rig.hand_model.HandMapping`, when the hand model cannot tell) with a
-    free root added around the skeleton's own root joint. metersPerUnit and upAxis Y or Z are
+    free root added around the skeleton's own root joint; a plain file may carry edited limits
+    for those DOFs as TOML text (:mod:`~retarget_core.rig.dof_limits`) in the Skeleton's
+    ``handretarget:dofLimits`` string. metersPerUnit and upAxis Y or Z are
     applied, and for a plain file the Skeleton prim's world transform (its ancestors' xformOps
     included; uniform scale allowed): the rig is in metres, Z-up, world (a file with the DOF
     spec stays in its Skeleton's space, where its free root is defined). A plain file whose skeleton is more than the
@@ -856,6 +858,13 @@ def read_rig_usd(path, *, confine_to=None, mapping=None, hand_root=None) -> Rig:
             raise InputError(f"{src}: no handretarget DOF spec, and DOFs by role could not be inferred: {err}") from err
         rig.metadata["dof_source"] = ("inferred by role (plain UsdSkel, no handretarget DOF spec); "
                                       "`handretarget rig import` writes them out for editing")
+        # limits the user edited (the add-in's panel writes them here, as `rig import --limits` reads them)
+        limits_text = _get(prim, "dofLimits", src=src, required=False)
+        if limits_text:
+            from .dof_limits import apply_limits_text
+
+            rig = apply_limits_text(rig, str(limits_text), source=f"{src}: {skel_el}.{_attr_name('dofLimits')}",
+                                    label=f"{_attr_name('dofLimits')} of {skel_el}")
     return rig
 
 

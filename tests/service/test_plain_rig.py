@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 
 import pytest
+from pxr import Sdf, Usd, UsdGeom
 
 from dcc_client.client import ServiceError
 
@@ -44,7 +45,18 @@ def test_a_plain_usdskel_hand_is_accepted_and_retargets(dana, inputs, tmp_path):
     assert final["state"] == "succeeded", final["error"]
     doc = json.loads(dana.artifact(final["id"], "result.json"))
     assert doc["dof_names"] == rig.dof_names
-    assert b"SkelAnimation" in dana.artifact(final["id"], "animation.usda")
+    # by default the layer sublayers the upload's own file name: placed beside the user's file, it plays there
+    layer = tmp_path / "animation.usda"
+    layer.write_bytes(dana.artifact(final["id"], "animation.usda"))
+    assert b"SkelAnimation" in layer.read_bytes()
+    assert list(Sdf.Layer.FindOrOpen(str(layer)).subLayerPaths) == ["plain_hand.usda"]
+    stage = Usd.Stage.Open(str(layer))
+    assert any(p.IsA(UsdGeom.Mesh) for p in stage.Traverse())  # the user's mesh, through the sublayer
+    # what the panel shows: every DOF with its joint and limits, and where the DOFs came from
+    info = uploaded["info"]
+    assert [d["name"] for d in info["dof_limits"]] == rig.dof_names
+    assert all(d["lower"] < d["upper"] for d in info["dof_limits"])
+    assert "inferred by role" in info["dof_source"] and "free_root_added" in info
 
 
 def test_the_layer_composes_over_the_users_own_file_placed_where_they_say(dana, inputs, tmp_path):
