@@ -118,7 +118,7 @@ class RetargetClient:
         """Queue a job; ``frames``: (start, end) of the clip to retarget, end excluded (None: all
         of it). With ``idempotency_key`` a repeated call returns the same job. ``rig_asset_path``:
         the path animation.usda sublayers (your own USD rig file, relative to where the layer
-        will sit); None: the job's rig.usda."""
+        will sit); None: the rig upload's own file name (a robot bundle: the job's rig.usda)."""
         doc = {"clip": clip, "rig": rig, "annotations": annotations, "preset": preset,
                "overrides": overrides or {}, "evaluate": evaluate}
         if source_rig:

@@ -53,7 +53,9 @@ def rig_info(rig) -> dict:
             "vertices": int(surface.n_vertices), "faces": int(len(surface.faces)), "dof_limits": limits,
             "dof_source": str(meta.get("dof_source", "the rig's DOF spec")),
             "free_root_added": meta.get("free_root_added") or None,  # the joint name, when one was added
-            "rig_warnings": [str(w) for w in meta.get("warnings", [])]}
+            "rig_warnings": [str(w) for w in meta.get("warnings", [])]} | (
+        # a surface cut from the uploaded mesh: where its vertices and triangles are in that mesh
+        {"surface_source": meta["surface_source"]} if meta.get("surface_source") else {})
 
 
 def clip_info(clip) -> dict:

@@ -141,6 +141,27 @@ def test_a_hand_inside_a_body_skeleton_is_found_and_cut_out(files, core, hand, t
     kept = rig.surface.vertices[:-1]  # the last vertex is the cap's centre
     assert kept[:, 1].min() >= ARM_CUT_Y - 0.01 and len(kept) < hand.surface.n_vertices
     assert rig.surface.vertices[-1][1] == pytest.approx(ARM_CUT_Y, abs=0.01)
+    # where each kept vertex and triangle is in the file's mesh (what the Blender add-in maps
+    # annotation points through): the same points, read by pxr alone; the cap is marked -1
+    from pxr import Usd, UsdGeom
+
+    source = rig.metadata["surface_source"]
+    stage = Usd.Stage.Open(str(files["body"]))
+    mesh = next(UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh))
+    counts, corners = list(mesh.GetFaceVertexCountsAttr().Get()), list(mesh.GetFaceVertexIndicesAttr().Get())
+    file_tris, at = [], 0
+    for n in counts:  # the reader's fan triangulation
+        file_tris += [(corners[at], corners[at + k], corners[at + k + 1]) for k in range(1, n - 1)]
+        at += n
+    world = skinned_world_points(files["body"]) * 0.01 @ Z_UP_TO_Y_UP[:3, :3]
+    v_src, f_src = np.array(source["vertices"]), np.array(source["faces"])
+    assert (source["file_vertices"], source["file_faces"]) == (len(world), len(file_tris))
+    assert v_src[-1] == -1 and (v_src[:-1] >= 0).all()
+    assert np.abs(rig.surface.vertices[:-1] - world[v_src[:-1]]).max() < 1e-6
+    kept_faces = f_src >= 0
+    assert (~kept_faces).sum() > 0 and all(np.asarray(rig.surface.faces)[~kept_faces].max(axis=1) == len(v_src) - 1)
+    for i in np.nonzero(kept_faces)[0][::50]:
+        assert list(v_src[rig.surface.faces[i]]) == list(file_tris[f_src[i]])  # corner order kept
     # two hands: said, and settled by naming one
     two = write_plain_usdskel(tmp_path / "two_hands.usda", **_body_arrays(hand, hands=2))
     with pytest.raises(InputError, match=r"2 hands.*--hand-root"):

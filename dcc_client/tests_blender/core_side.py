@@ -8,6 +8,10 @@ bpy environment pins numpy < 2 and cannot import retarget_core, so files pass be
     python core_side.py grab OUT_DIR              synthetic GRAB sequence + MANO model + object mesh
     python core_side.py annotations FILE RIG.usda check an annotation file against the rig and
                                                   the demo source hand
+    python core_side.py hand OUT_DIR              the demo target hand as arrays (hand.json: joints,
+                                                  their rest origins, surface, skin weights) for a
+                                                  test to build its own armature from, and as
+                                                  plain UsdSkel (demo_plain.usda)
 """
 
 from __future__ import annotations
@@ -96,7 +100,28 @@ def propose(rig_path: str, out: str) -> None:
     print(json.dumps({"faces": int(len(target.surface.faces)), "vertices": int(target.surface.n_vertices)}))
 
 
+def hand(out: Path) -> None:
+    """The target hand (the ``inputs`` one) as plain arrays and as plain UsdSkel: the same hand
+    with DOFs by role, the reference a test's own armature is compared against."""
+    from retarget_core.rig.demo_hands import demo_hand
+    from retarget_core.rig.usd_io import write_rig_usd
+
+    out.mkdir(parents=True, exist_ok=True)
+    rig = demo_hand("human_alt", RESOLUTION)
+    write_rig_usd(rig, out / "demo_plain.usda", dof_spec=False)
+    s = rig.surface
+    world = rig.kinematics().bind_world
+    weights = [[[int(j), float(w)] for j, w in zip(s.joint_indices[v], s.joint_weights[v]) if w > 0]
+               for v in range(s.n_vertices)]
+    (out / "hand.json").write_text(json.dumps({
+        "joints": rig.joint_names, "parents": [j.parent for j in rig.joints],
+        "origins": world[:, :3, 3].tolist(), "vertices": s.vertices.tolist(), "faces": s.faces.tolist(),
+        "weights": weights}))
+    print(json.dumps({"joints": rig.n_joints, "vertices": int(s.n_vertices)}))
+
+
 if __name__ == "__main__":
     cmd, args = sys.argv[1], sys.argv[2:]
     {"inputs": lambda: inputs(Path(args[0])), "grab": lambda: grab(Path(args[0])), "rig": lambda: rig(*args),
-     "annotations": lambda: annotations(*args), "propose": lambda: propose(*args)}[cmd]()
+     "annotations": lambda: annotations(*args), "propose": lambda: propose(*args),
+     "hand": lambda: hand(Path(args[0]))}[cmd]()

@@ -35,6 +35,7 @@ def retargeted(addon, service, inputs, work):
     s.overrides = json.dumps(FAST)
     s.evaluate = False
     s.auto_import = True  # the timer imports when the job succeeds (the operator: test_baked_import)
+    s.use_clip_fps = True  # keys on clip frames (the scene's own rate: test_any_armature.py)
     assert 'FINISHED' in bpy.ops.hand_retarget.submit()
     jobs = ext("jobs")
     # the job is followed by a timer, never waited for: drive the timer function as Blender would
@@ -45,8 +46,7 @@ def retargeted(addon, service, inputs, work):
     assert not jobs.is_polling() and not bpy.app.timers.is_registered(jobs.poll_job)
     assert arm.animation_data is not None and arm.animation_data.action.name.startswith("HR_"), s.job_message
     s.auto_import = False
-    folder = ext("ops").work_folder(s.job_id)
-    return dict(arm=arm, mesh=mesh, job=s.job_id, layer=f"{folder}/animation.usda", settings=s)
+    return dict(arm=arm, mesh=mesh, job=s.job_id, layer=ext("ops").result_layer_path(arm, s.job_id), settings=s)
 
 
 def test_annotations_from_proposal(retargeted, work):
@@ -155,11 +155,12 @@ def test_baked_import(retargeted):
     before = arm.animation_data.action
     scene = bpy.context.scene
     s = scene.hand_retarget
-    s.baked, s.import_object = True, False
+    s.baked, s.import_object, s.import_mode = True, False, 'NLA'  # the spline action stays, as a strip
     try:
         assert 'FINISHED' in bpy.ops.hand_retarget.import_result(job_id=retargeted["job"])
     finally:
-        s.baked, s.import_object = False, True
+        s.baked, s.import_object, s.import_mode = False, True, 'REPLACE'
+    assert [st.action for t in arm.animation_data.nla_tracks for st in t.strips] == [before]
     assert arm.animation_data.action != before
     fcurves = _fcurves(arm)
     n = scene.frame_end - scene.frame_start + 1

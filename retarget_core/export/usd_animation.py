@@ -472,7 +472,9 @@ def read_dof_splines(path) -> dict:
     ``path`` (time in time codes). The DOF name is the one in customData where present."""
     out = {}
     stage = _open_layer(path)  # held: prims expire with their stage
-    for prim in stage.Traverse():
+    # every prim, overs included: the curves are read from the layer even when the rig file it
+    # sublayers (the user's own, by its name) is not beside it
+    for prim in stage.TraverseAll():
         for attr in prim.GetAttributes():
             name = attr.GetName()
             if not name.startswith(DOF_PREFIX) or not attr.HasSpline():
@@ -486,7 +488,9 @@ def read_dof_bsplines(path) -> dict:
     """{DOF name: BSplineCurve} rebuilt from the raw knots and coefficients in customData."""
     out = {}
     stage = _open_layer(path)  # held: prims expire with their stage
-    for prim in stage.Traverse():
+    # every prim, overs included: the curves are read from the layer even when the rig file it
+    # sublayers (the user's own, by its name) is not beside it
+    for prim in stage.TraverseAll():
         for attr in prim.GetAttributes():
             info = attr.GetCustomDataByKey(CUSTOM_KEY) if attr.GetName().startswith(DOF_PREFIX) else None
             if not info or "knots" not in info:

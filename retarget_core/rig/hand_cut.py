@@ -21,6 +21,8 @@ from .model import Joint, Rig, SkinnedMesh
 
 #: A vertex belongs to the cut hand when the kept joints carry at least this share of it.
 KEEP_SHARE = 0.5
+#: rig metadata key: where the cut surface's vertices and triangles are in the file's mesh
+SURFACE_SOURCE = "surface_source"
 
 
 def _children(rig: Rig) -> list[list[int]]:
@@ -98,15 +100,20 @@ def cut_hand(rig: Rig, hand_root: str | None = None) -> Rig:
         joints.append(Joint(rig.joints[j].name, -1 if j == root else int(new_index[parent]), local))
     dofs = [replace(d, joint=int(new_index[d.joint]), axis=np.array(d.axis, float))
             for d in rig.dofs if new_index[d.joint] >= 0]
-    surface = _cut_mesh(rig.surface, new_index, int(new_index[root]), rig.n_joints, what=f"{rig.name} surface")
+    surface, used = _cut_mesh(rig.surface, new_index, int(new_index[root]), rig.n_joints,
+                              what=f"{rig.name} surface")
     cut = Rig(name=rig.name, joints=joints, dofs=dofs, surface=surface, visual=None,
               metadata={**rig.metadata, "hand_root": rig.joint_names[root],
-                        "cut_from": f"{rig.n_joints} joints, {rig.surface.n_vertices} vertices"})
+                        "cut_from": f"{rig.n_joints} joints, {rig.surface.n_vertices} vertices",
+                        SURFACE_SOURCE: surface_source(rig, surface, used)})
     cut.validate(source=f"{rig.name} (the hand below {rig.joint_names[root]!r})")
     return cut
 
 
-def _cut_mesh(mesh: SkinnedMesh, new_index: np.ndarray, root: int, n_joints: int, *, what: str) -> SkinnedMesh:
+def _cut_mesh(mesh: SkinnedMesh, new_index: np.ndarray, root: int, n_joints: int, *,
+              what: str) -> tuple[SkinnedMesh, np.ndarray]:
+    """The part of ``mesh`` the kept joints carry, capped; and (n,) the ids of its first n
+    vertices in ``mesh`` (the rest are cap centres)."""
     dense = mesh.dense_weights(n_joints)
     kept_joints = np.nonzero(new_index >= 0)[0]
     share = dense[:, kept_joints].sum(axis=1)
@@ -125,7 +132,7 @@ def _cut_mesh(mesh: SkinnedMesh, new_index: np.ndarray, root: int, n_joints: int
     order = np.argsort(-weights, axis=1)[:, :k]
     top = np.take_along_axis(weights, order, axis=1)
     top /= top.sum(axis=1, keepdims=True)
-    return SkinnedMesh(vertices=vertices, faces=faces, joint_indices=order, joint_weights=top)
+    return SkinnedMesh(vertices=vertices, faces=faces, joint_indices=order, joint_weights=top), used
 
 
 def _cap_openings(vertices, faces, weights):
@@ -182,4 +189,30 @@ def keep_main_shell(rig: Rig) -> Rig:
                f"left out {surface.n_vertices - len(used)} vertices and {dropped_faces} faces of the others "
                "(nails or separate shells take no part in contacts)")
     return Rig(name=rig.name, joints=list(rig.joints), dofs=list(rig.dofs), surface=kept, visual=rig.visual,
-               metadata={**rig.metadata, "warnings": list(rig.metadata.get("warnings", [])) + [warning]})
+               metadata={**rig.metadata, "warnings": list(rig.metadata.get("warnings", [])) + [warning],
+                         SURFACE_SOURCE: surface_source(rig, kept, used)})
+
+
+def surface_source(before: Rig, surface: SkinnedMesh, used: np.ndarray) -> dict:
+    """Where each vertex and triangle of ``surface`` (cut or pruned from ``before``'s) comes
+    from in the file's mesh, so that a tool holding that mesh (the Blender add-in) can carry
+    annotation points between the two: {"vertices": [file vertex id, -1 for a cap's centre],
+    "faces": [file triangle id, -1 for a cap triangle], "file_vertices", "file_faces"}.
+    ``used``: (n,) ids in ``before``'s surface of the first n vertices of ``surface``; the
+    kept triangles keep their corner order. Composed with what ``before`` records."""
+    prior = before.metadata.get(SURFACE_SOURCE)
+    n_used = len(used)
+    index = {tuple(int(x) for x in f): i for i, f in enumerate(before.surface.faces)}
+    faces = np.full(len(surface.faces), -1, dtype=np.int64)
+    for i, f in enumerate(surface.faces):
+        if f.max() < n_used:
+            faces[i] = index[tuple(int(x) for x in used[f])]
+    vertices = np.concatenate([used, np.full(surface.n_vertices - n_used, -1, dtype=np.int64)])
+    file_vertices, file_faces = before.surface.n_vertices, len(before.surface.faces)
+    if prior is not None:  # ids in ``before`` -> ids in the file
+        pv, pf = np.asarray(prior["vertices"]), np.asarray(prior["faces"])
+        vertices = np.where(vertices >= 0, pv[np.maximum(vertices, 0)], -1)
+        faces = np.where(faces >= 0, pf[np.maximum(faces, 0)], -1)
+        file_vertices, file_faces = prior["file_vertices"], prior["file_faces"]
+    return {"vertices": vertices.tolist(), "faces": faces.tolist(), "file_vertices": int(file_vertices),
+            "file_faces": int(file_faces)}

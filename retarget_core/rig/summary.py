@@ -42,7 +42,10 @@ def rig_summary(rig: Rig) -> dict:
             "manifold": report.manifold,
             "components": report.components,
         },
-        "metadata": rig.metadata,
+        # the file-mesh ids of a cut surface are arrays for tools, not for reading: counted here
+        "metadata": {k: (f"{len(v['vertices'])} vertices and {len(v['faces'])} triangles from the file's "
+                         f"{v['file_vertices']} and {v['file_faces']}" if k == "surface_source" else v)
+                     for k, v in rig.metadata.items()},
     }
     if rig.visual is not None:
         summary["visual"] = {"vertices": rig.visual.n_vertices, "faces": int(len(rig.visual.faces))}

@@ -4,7 +4,9 @@ the core's own output), ownership, and bad requests that get a 4xx saying what t
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -29,6 +31,8 @@ def finished(service, alice, inputs, tmp_path_factory):
     folder = tmp_path_factory.mktemp("downloaded")
     final = alice.job(job["id"])
     files = alice.download_result(job["id"], folder) if final["state"] == "succeeded" else {}
+    # the layer sublayers the rig upload's own file name: the user's file sits beside it
+    shutil.copy(inputs["rig"], folder / Path(inputs["rig"]).name)
     return dict(ids=ids, job=job, events=events, final=final, files=files, folder=folder)
 
 

@@ -192,6 +192,71 @@ def bone_names(arm) -> set:
     return {b.name for b in arm.data.bones} if arm is not None else set()
 
 
+# ---- the service's surface and this mesh -----------------------------------------------------------
+def surface_map(arm) -> dict | None:
+    """Where the service's hand surface is in the exported mesh, when they differ (a hand cut
+    from a body mesh, a mesh in several pieces): {"vertices", "faces": ids in this mesh, -1 for
+    the cap the service closed the cut with}; None when they are the same."""
+    text = arm.hand_retarget.surface_map_json if arm is not None else ""
+    return json.loads(text) if text else None
+
+
+def _target_points(doc):
+    """(owner, key, what) of every target point of a document: owner[key] is a point dict."""
+    for m in doc.get("markers", []):
+        for j in range(len(m["target"])):
+            yield m["target"], j, f"marker {m['name']!r}"
+    for c in doc.get("axial_curves", []):
+        if isinstance(c.get("target"), dict):
+            for which in ("start", "direction"):
+                yield c["target"], which, f"curve {c['name']!r} {which}"
+
+
+def to_mesh(doc: dict, smap: dict, mesh_signature: dict) -> tuple[dict, list[str]]:
+    """A document on the service's surface carried onto this mesh's triangles (the kept
+    triangles keep their corners, so barycentrics carry over); points on the cap are dropped
+    (a marker left with none is left out, a curve is discarded), with warnings."""
+    doc = json.loads(json.dumps(doc))
+    warnings, dropped = [], set()
+    for owner, key, what in list(_target_points(doc)):
+        field = "vertex" if "vertex" in owner[key] else "face"
+        ids = smap["vertices" if field == "vertex" else "faces"]
+        i = owner[key].get(field)
+        if not isinstance(i, int) or not 0 <= i < len(ids):
+            raise AnnotationError(f"{what}: {field} {i} is not one of the service's surface ({len(ids)})")
+        if ids[i] < 0:
+            dropped.add((id(owner), key))
+            warnings.append(f"{what}: a point on the cap that closes the cut hand; left out")
+        else:
+            owner[key] = {**owner[key], field: ids[i]}
+    for m in doc.get("markers", []):
+        m["target"] = [p for j, p in enumerate(m["target"]) if (id(m["target"]), j) not in dropped]
+    doc["markers"] = [m for m in doc.get("markers", []) if m["target"]]
+    for c in doc.get("axial_curves", []):
+        if isinstance(c.get("target"), dict) and any((id(c["target"]), k) in dropped for k in ("start", "direction")):
+            c["target"] = "discard"
+    doc["target"] = {**(doc.get("target") or {}), **mesh_signature}
+    doc["target"].pop("surface_sha256", None)  # the hash is of the service's surface
+    return doc, warnings
+
+
+def to_service(doc: dict, smap: dict, rig_name: str) -> dict:
+    """A document on this mesh's triangles carried onto the service's surface; a point on a
+    part the service left out (the body, a separate piece) is an error naming it."""
+    doc = json.loads(json.dumps(doc))
+    inverse = {field: {g: i for i, g in enumerate(smap[key]) if g >= 0}
+               for field, key in (("vertex", "vertices"), ("face", "faces"))}
+    for owner, key, what in list(_target_points(doc)):
+        field = "vertex" if "vertex" in owner[key] else "face"
+        i = inverse[field].get(owner[key][field])
+        if i is None:
+            raise AnnotationError(f"{what}: on a part of the mesh that is not the hand the service retargets (the "
+                                  "rest of the body, or a separate piece); move it onto the hand")
+        owner[key] = {**owner[key], field: i}
+    doc["target"] = {"rig": rig_name, "vertices": len(smap["vertices"]), "faces": len(smap["faces"])}
+    return doc
+
+
 # ---- JSON -> Blender ------------------------------------------------------------------------------
 def load_document(doc, arm, mesh_obj) -> dict:
     """Fill ``mesh_obj``'s marker vertex groups and curve list from an annotation document (a
@@ -207,6 +272,9 @@ def load_document(doc, arm, mesh_obj) -> dict:
         raise AnnotationError(f"not a {FORMAT} document of version {' or '.join(map(str, VERSIONS))}")
     me = mesh_obj.data
     tris = core_triangles(me)
+    smap, warnings = surface_map(arm), []
+    if smap is not None and (doc.get("target") or {}).get("faces") == len(smap["faces"]):
+        doc, warnings = to_mesh(doc, smap, signature(arm, mesh_obj))
     target = doc.get("target") or {}
     if (target.get("vertices"), target.get("faces")) != (len(me.vertices), len(tris)):
         raise AnnotationError(
@@ -262,7 +330,7 @@ def load_document(doc, arm, mesh_obj) -> dict:
         "markers": {m["name"]: m["source"] for m in doc.get("markers", [])},
         "curves": {c["name"]: c["source"] for c in doc.get("axial_curves", [])},
     })
-    return {"markers": len(markers), "curves": len(curves)}
+    return {"markers": len(markers), "curves": len(curves), "warnings": warnings}
 
 
 # ---- Blender -> JSON ------------------------------------------------------------------------------
@@ -337,6 +405,9 @@ def build_document(arm, mesh_obj) -> tuple[dict, list[str]]:
     doc = {"format": FORMAT, "version": VERSION, "source": src["source"], "target": signature(arm, mesh_obj),
            "landmark_spacing": src.get("landmark_spacing", DEFAULT_SPACING),
            "markers": markers, "axial_curves": curves}
+    smap = surface_map(arm)
+    if smap is not None:
+        doc = to_service(doc, smap, arm.name)
     if _has_v2_fields(doc):
         doc["version"] = 2
     return doc, warnings

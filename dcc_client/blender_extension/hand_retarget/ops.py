@@ -44,12 +44,38 @@ def export_and_upload(context, arm, mesh, filepath: str = "", upload: bool = Tru
     info = rig_export.export_rig(context, arm, mesh, filepath)
     settings = arm.hand_retarget
     settings.rig_file, settings.meters_per_unit = filepath, info["meters_per_unit"]
+    settings.exported_mode = info["dof_mode"]
     if upload:
-        asset = jobs.make_client(context).upload("rig", filepath, name=os.path.basename(filepath))
+        hand_root = settings.hand_root_bone.strip() or None
+        if hand_root is not None and hand_root not in arm.data.bones:
+            raise rig_export.RigExportError(f"the hand root {hand_root!r} is not a bone of {arm.name!r}")
+        asset = jobs.make_client(context).upload("rig", filepath, name=os.path.basename(filepath),
+                                                 hand_root=hand_root)
         settings.rig_id = asset["id"]
         info["asset"] = asset
+        show_dof_limits(arm, asset.get("info") or {})
+        source = (asset.get("info") or {}).get("surface_source")
+        settings.surface_map_json = json.dumps(source) if source else ""
     info["filepath"] = filepath
     return info
+
+
+def show_dof_limits(arm, rig_info: dict) -> None:
+    """Fill the armature's DOF list from the service's rig info (hand-model DOFs, without the
+    free root); limits the animator edited stay as they were edited."""
+    items = arm.hand_retarget.dof_limits
+    edited = {i.name: (i.lower, i.upper) for i in items if i.edited}
+    items.clear()
+    if arm.hand_retarget.exported_mode != 'HAND_MODEL':
+        return
+    for d in rig_info.get("dof_limits") or ():
+        if d["name"] in rig_export.ROOT_DOFS:
+            continue  # the free root: the solver's search box, not the hand's
+        item = items.add()
+        item.name, item.joint, item.kind = d["name"], d["joint"], d["kind"]
+        lower, upper = edited.get(d["name"], (d["lower"], d["upper"]))
+        item.lower, item.upper = lower, upper
+        item.edited = d["name"] in edited  # set last: the limits' update marks an item edited
 
 
 class _Op:
@@ -94,8 +120,8 @@ class HAND_RETARGET_OT_add_root_bone(_Op, bpy.types.Operator):
 
 
 class HAND_RETARGET_OT_export_rig(_Op, bpy.types.Operator):
-    """Export the armature and its skinned mesh as a Hand Retarget rig (USD with the DOF spec)
-    and upload it to the service"""
+    """Export the armature and its skinned mesh as a Hand Retarget rig (USD: DOFs from the hand
+    model, or from the bone channels) and upload it to the service"""
     bl_idname = "hand_retarget.export_rig"
     bl_label = "Export Rig"
 
@@ -111,9 +137,16 @@ class HAND_RETARGET_OT_export_rig(_Op, bpy.types.Operator):
             info = export_and_upload(context, arm, mesh, self.filepath, self.upload)
         except ERRORS as err:
             return self.fail(err)
-        for w in info["warnings"]:
+        served = (info.get("asset") or {}).get("info") or {}
+        for w in info["warnings"] + list(served.get("rig_warnings") or ()):
             self.report({'WARNING'}, w)
-        self.report({'INFO'}, f"rig {info['rig_name']}: {len(info['dofs'])} DOFs, {info['vertices']} vertices"
+        if info["dofs"] is not None:
+            dofs = f"{len(info['dofs'])} DOFs from bone channels"
+        elif served:
+            dofs = f"{served['dofs']} DOFs from the hand model"
+        else:
+            dofs = "DOFs from the hand model (given at upload)"
+        self.report({'INFO'}, f"rig {info['rig_name']}: {dofs}, {info['vertices']} vertices"
                               + (f", uploaded {info['asset']['id'][:12]}" if self.upload else ""))
         return {'FINISHED'}
 
@@ -141,6 +174,8 @@ class HAND_RETARGET_OT_propose_annotations(_Op, bpy.types.Operator):
         except (annotations.AnnotationError, rig_export.RigExportError) + ERRORS as err:
             return self.fail(err)
         mesh.hand_retarget.annotations_id = asset["id"]
+        for w in counts["warnings"]:
+            self.report({'WARNING'}, w)
         self.report({'INFO'}, f"proposed {counts['markers']} markers and {counts['curves']} curves")
         return {'FINISHED'}
 
@@ -162,6 +197,8 @@ class HAND_RETARGET_OT_load_annotations(_Op, bpy.types.Operator, ImportHelper):
                 counts = annotations.load_document(fh.read(), arm, mesh)
         except (OSError, annotations.AnnotationError) as err:
             return self.fail(err)
+        for w in counts["warnings"]:
+            self.report({'WARNING'}, w)
         self.report({'INFO'}, f"loaded {counts['markers']} markers and {counts['curves']} curves")
         return {'FINISHED'}
 
@@ -394,30 +431,65 @@ def frame_range(s):
     return [int(s.frame_first), int(s.frame_end)]
 
 
-def import_result(context, arm, job_id: str, *, scene=None, baked=None, with_object=None, start_frame=None) -> dict:
-    """Fetch a succeeded job's result and put it on ``arm`` (and the object beside it). A job
-    that retargeted a frame range [first, end) lands at ``start_frame + first``, where those
-    frames of the clip are."""
+def result_layer_path(arm, job_id: str) -> str:
+    """Where a job's animation.usda is put: beside the rig file exported from ``arm``, whose
+    name the layer sublayers, so that it plays over that file in any USD tool
+    (``<rig>.<job>.animation.usda``); else in the job's work folder beside its rig.usda."""
+    rig_file = arm.hand_retarget.rig_file
+    if rig_file:
+        stem = os.path.splitext(os.path.basename(rig_file))[0]
+        return os.path.join(os.path.dirname(rig_file), f"{stem}.{job_id[:8]}.animation.usda")
+    return os.path.join(work_folder(job_id), "animation.usda")
+
+
+def import_result(context, arm, job_id: str, *, scene=None, baked=None, with_object=None, start_frame=None,
+                  mode=None) -> dict:
+    """Fetch a succeeded job's result and put it on ``arm`` (and the object beside it), timed
+    into the scene's frame rate (or the clip's, with the scene setting). A job that retargeted
+    a frame range [first, end) lands where those frames of the clip are. A bone-channel rig
+    gets its DOF curves; a hand-model rig the layer's SkelAnimation on its own bones (only the
+    hand's, below the hand root, in a body armature) and the wrist target."""
     scene = scene or context.scene
     s = scene.hand_retarget
     baked = s.baked if baked is None else baked
     with_object = s.import_object if with_object is None else with_object
     start_frame = s.start_frame if start_frame is None else start_frame
+    mode = mode or s.import_mode
+    settings = arm.hand_retarget
     client = jobs.make_client(context)
     doc = json.loads(client.artifact(job_id, "result.json"))
-    start_frame += int((doc.get("frames") or [0])[0])
-    mpu = arm.hand_retarget.meters_per_unit
-    if not arm.hand_retarget.rig_file:  # never exported here: the same rule as the export
-        mpu = rig_export.meters_per_unit(context, arm)
-    info = anim_import.import_curves(context, arm, doc, mpu=mpu, start_frame=start_frame, baked=baked,
-                                     action_name=f"HR_{arm.name}_{job_id[:8]}", scene=scene)
+    scene_fps = anim_import.scene_frame_rate(scene, float(doc["fps"]), s.use_clip_fps)
+    start = start_frame + int((doc.get("frames") or [0])[0]) / float(doc["fps"]) * scene_fps
+    plain = settings.exported_mode == 'HAND_MODEL'
+    layer = result_layer_path(arm, job_id)
+    if plain or with_object:
+        client.download(job_id, "animation.usda", layer)
+        if not settings.rig_file:
+            client.download(job_id, "rig.usda", os.path.join(os.path.dirname(layer), "rig.usda"))
+    tag, action_name = job_id, f"HR_{arm.name}_{job_id[:8]}"
+    anim_import.clear_previous(arm, mode)
+    if mode == 'REPLACE':
+        anim_import.remove_previous_objects(arm, "HR_Object_")
+        anim_import.remove_previous_objects(arm, anim_import.WRIST_TARGET)
+    if plain:
+        hand_root = settings.hand_root_bone.strip()
+        bones = anim_import.subtree(arm, hand_root) if hand_root else None
+        info = anim_import.import_skel_animation(context, arm, layer, start_frame=start, scene=scene,
+                                                 scene_fps=scene_fps, bones=bones, action_name=action_name, tag=tag)
+        wrist = anim_import.import_wrist_target(context, arm, layer, start_frame=start, scene=scene,
+                                                scene_fps=scene_fps, plain=True, tag=tag)
+        info["wrist_target"] = wrist.name if wrist is not None else None
+    else:
+        mpu = settings.meters_per_unit
+        if not settings.rig_file:  # never exported here: the same rule as the export
+            mpu = rig_export.meters_per_unit(context, arm)
+        info = anim_import.import_curves(context, arm, doc, mpu=mpu, start_frame=start, baked=baked,
+                                         action_name=action_name, scene=scene, scene_fps=scene_fps, tag=tag)
     if with_object:
-        folder = work_folder(job_id)
-        for name in ("rig.usda", "animation.usda"):  # the layer sublayers rig.usda beside it
-            client.download(job_id, name, os.path.join(folder, name))
-        obj = anim_import.import_object(context, arm, os.path.join(folder, "animation.usda"), mpu=mpu,
-                                        start_frame=start_frame, name=f"HR_Object_{job_id[:8]}", scene=scene)
+        obj = anim_import.import_object(context, arm, layer, start_frame=start, name=f"HR_Object_{job_id[:8]}",
+                                        scene=scene, scene_fps=scene_fps, plain=plain, tag=tag)
         info["object"] = obj.name if obj is not None else None
+    info["scene_fps"] = scene_fps
     return info
 
 
@@ -442,7 +514,8 @@ class HAND_RETARGET_OT_import_result(_Op, bpy.types.Operator):
             return self.fail(err)
         if info["skipped"]:
             self.report({'WARNING'}, f"DOFs without a bone: {', '.join(info['skipped'][:8])}")
-        self.report({'INFO'}, f"{info['fcurves']} F-curves, {info['frames']} frames at {info['fps']:g} fps")
+        self.report({'INFO'}, f"{info['fcurves']} F-curves: {info['frames']} clip frames at {info['fps']:g} fps "
+                              f"into the scene at {info['scene_fps']:g} fps")
         return {'FINISHED'}
 
 

@@ -40,8 +40,42 @@ class HR_Curve(bpy.types.PropertyGroup):
     discard: BoolProperty(name="Discard", default=False, description="Drop the contacts of this curve's charts")
 
 
+def _mark_edited(self, context):
+    self.edited = True
+
+
+class HR_DofLimit(bpy.types.PropertyGroup):
+    """One DOF the service gave a rig from the hand model (the name is the DOF's name); the
+    limits are the service's until the animator edits them, then the next export sends them."""
+
+    joint: StringProperty(name="Bone")
+    kind: StringProperty(name="Kind", default="rotate")
+    lower: FloatProperty(name="Min", subtype='ANGLE', update=_mark_edited)
+    upper: FloatProperty(name="Max", subtype='ANGLE', update=_mark_edited)
+    edited: BoolProperty(name="Edited", default=False, description="Sent with the next export")
+
+
 class HR_ObjectSettings(bpy.types.PropertyGroup):
-    # on the armature: the last exported / uploaded rig
+    # on the armature: how its DOFs are made, and the last exported / uploaded rig
+    dof_mode: EnumProperty(name="DOFs", items=[
+        ('AUTO', "Automatic", "Bone channels when the armature has a root bone at its origin and bones carry "
+                              "rotation locks or limits; else the hand model"),
+        ('HAND_MODEL', "Hand model", "The service reads the hand from the bones and the skin and gives each joint "
+                                     "flexion / abduction DOFs with anatomical limits (editable below); any bone "
+                                     "names, rolls and placement"),
+        ('CHANNELS', "Bone channels", "Each bone's free Euler channels, limited by Limit Rotation constraints or "
+                                      "hr_min_x / hr_max_x properties; needs a root bone at the armature origin")],
+        default='AUTO')
+    hand_root_bone: StringProperty(name="Hand root", default="",
+                                   description="In a body armature: the bone the hand hangs from (e.g. the "
+                                               "forearm); empty: the whole armature is the hand, or the service "
+                                               "finds where the fingers branch")
+    dof_limits: CollectionProperty(type=HR_DofLimit)
+    dof_limit_index: IntProperty(default=0)
+    exported_mode: StringProperty(default="", description="The DOF mode of the last export")
+    surface_map_json: StringProperty(default="", description="Where the service's hand surface (cut from a body "
+                                     "mesh, or its largest piece) is in this mesh: annotation points are carried "
+                                     "through it")
     rig_id: StringProperty(name="Rig asset", default="")
     rig_file: StringProperty(name="Rig file", default="", subtype='FILE_PATH')
     meters_per_unit: FloatProperty(name="Metres per unit", default=1.0, min=1e-9, precision=6)
@@ -78,6 +112,13 @@ class HR_SceneSettings(bpy.types.PropertyGroup):
     baked: BoolProperty(name="Baked", default=False, description="One key per frame instead of the spline keys")
     import_object: BoolProperty(name="Object", default=True, description="Import the animated object too")
     start_frame: IntProperty(name="Start frame", default=1, description="Blender frame of the clip's first frame")
+    use_clip_fps: BoolProperty(name="Clip frame rate", default=False,
+                               description="Set the scene's frame rate to the clip's; off: the scene keeps its own "
+                                           "and the result is timed into it")
+    import_mode: EnumProperty(name="Re-import", items=[
+        ('REPLACE', "Replace", "A new import replaces the previous result's action"),
+        ('NLA', "New NLA strip", "The previous action is kept as an NLA strip; the new result is the active action")],
+        default='REPLACE')
     show_annotations: BoolProperty(name="Show annotations", default=True)
 
     job_id: StringProperty(name="Job", default="")
@@ -88,7 +129,7 @@ class HR_SceneSettings(bpy.types.PropertyGroup):
     job_message: StringProperty(default="")
 
 
-CLASSES = (HR_AddonPreferences, HR_Curve, HR_ObjectSettings, HR_SceneSettings)
+CLASSES = (HR_AddonPreferences, HR_Curve, HR_DofLimit, HR_ObjectSettings, HR_SceneSettings)
 
 
 def register():

@@ -1,7 +1,19 @@
-"""Rig export: the armature and its skinned mesh through Blender's USD exporter, then the
-``handretarget:`` DOF spec added to the Skeleton prim (retarget_core/rig/usd_io.py reads it).
+"""Rig export: the armature and its skinned mesh through Blender's USD exporter, then made into
+what the core reads (retarget_core/rig/usd_io.py), in one of two DOF modes (the armature's
+``hand_retarget.dof_mode``; Automatic picks one, see :func:`resolve_dof_mode`):
 
-Conventions (so that imported F-curves equal the DOF curves exactly):
+**Hand model** (any armature as it is: any bone names and rolls, the hand anywhere in the
+scene, a hand inside a body armature with ``hand_root_bone``). The file stays plain UsdSkel:
+the service reads the hand from the bones and the skin and gives each joint DOFs by role
+(flexion, abduction) with anatomical limits, and a free root around the armature's own root.
+The file's world is Blender's world (the armature object's transform is the Skeleton's
+parent Xform; ``metersPerUnit`` = the scene's unit scale). Limits the animator edited in the
+panel (``dof_limits``, from the service's rig info) go in the Skeleton's
+``handretarget:dofLimits`` string, the TOML of ``handretarget rig import --limits``. Results
+come back as the baked SkelAnimation keyed on the armature's own bones (anim_import).
+
+**Bone channels** (the ``handretarget:`` DOF spec added to the Skeleton prim), so that
+imported F-curves equal the DOF curves exactly:
 
 - The core composes a joint as ``rest_local @ A_1(q_1) @ A_2(q_2) ...``; Blender composes a
   pose bone as ``rest @ T(location) @ R(rotation_euler)``, and Euler mode "ABC" is the matrix
@@ -17,9 +29,9 @@ Conventions (so that imported F-curves equal the DOF curves exactly):
 - Other bones rotate only: an axis is free unless its rotation lock is set.
 - Limits: an enabled Limit Rotation constraint (``use_limit_x``, ``min_x``, ``max_x``, ...)
   else the custom properties ``hr_min_x`` / ``hr_max_x`` (degrees) on the pose bone or the
-  bone, else +-180 degrees (+-360 for the root, as the core's own free root). Root translation:
-  Limit Location (``use_min_x``, ...), else ``hr_min_tx`` / ``hr_max_tx`` (armature units),
-  else +-2 m. The rest value is 0 clamped into the limits.
+  bone, else +-180 degrees (+-360 for the root, as the core's own free root), reported as a
+  warning. Root translation: Limit Location (``use_min_x``, ...), else ``hr_min_tx`` /
+  ``hr_max_tx`` (armature units), else +-2 m. The rest value is 0 clamped into the limits.
 - Units: the file is in armature units with ``metersPerUnit`` = scene unit scale times the
   armature object's (uniform) scale, ``upAxis`` Z; the core's world is the armature's object
   space. Mesh points are carried into the skeleton's space through ``geomBindTransform``.
@@ -81,6 +93,60 @@ def root_is_free(root_bone, tol: float = 1e-5) -> bool:
     """Whether the root bone's rest matrix is the identity (what the core's root expects)."""
     m = root_bone.matrix_local
     return all(abs(m[i][j] - (1.0 if i == j else 0.0)) <= tol for i in range(4) for j in range(4))
+
+
+def bone_dof_settings(arm: bpy.types.Object, bones) -> list[str]:
+    """Names of the bones that say something about their DOFs: a rotation lock, an enabled
+    Limit Rotation constraint, or ``hr_min_*`` / ``hr_max_*`` custom properties."""
+    out = []
+    for bone in bones:
+        pb = arm.pose.bones[bone.name]
+        keys = [k for h in (pb, bone) for k in h.keys() if k.startswith(("hr_min_", "hr_max_"))]
+        if any(pb.lock_rotation) or keys or any(
+                any(getattr(c, f"use_limit_{a}") for a in AXES) for c in _active_constraints(pb, 'LIMIT_ROTATION')):
+            out.append(bone.name)
+    return out
+
+
+def resolve_dof_mode(arm: bpy.types.Object, bones, root_bone) -> tuple[str, list[str]]:
+    """('HAND_MODEL' | 'CHANNELS', warnings) for the armature's ``dof_mode``. Automatic takes
+    the bone channels when the root bone rests at the armature origin and bones carry DOF
+    settings, else the hand model (saying so when bone settings are then left unused)."""
+    mode = arm.hand_retarget.dof_mode
+    if mode == 'CHANNELS':
+        if not root_is_free(root_bone):
+            raise RigExportError(
+                f"DOFs from bone channels need the root bone {root_bone.name!r} at the armature origin with "
+                "identity rest orientation (use Add Root Bone), or choose DOFs: Hand model, which takes the "
+                "armature as it is")
+        return mode, []
+    if mode == 'HAND_MODEL':
+        return mode, []
+    settings = bone_dof_settings(arm, bones)
+    if settings and root_is_free(root_bone):
+        return 'CHANNELS', []
+    warnings = []
+    if settings:
+        warnings.append(f"{len(settings)} bones carry rotation locks or limits (e.g. {settings[0]!r}) but the root "
+                        f"bone {root_bone.name!r} is not at the armature origin: the DOFs come from the hand model "
+                        "and those settings are not used (Add Root Bone and choose DOFs: Bone channels to use them)")
+    return 'HAND_MODEL', warnings
+
+
+def limits_text(arm: bpy.types.Object) -> str:
+    """The limits the animator edited in the panel as the core's limits TOML (degrees for
+    rotations, metres for translations; by joint), '' when none was edited."""
+    by_joint = {}
+    for item in arm.hand_retarget.dof_limits:
+        if item.edited:
+            by_joint.setdefault(item.joint, []).append(item)
+    lines = []
+    for joint, items in by_joint.items():
+        lines.append(f"[{json.dumps(joint)}]")
+        for item in items:
+            scale = 180.0 / math.pi if item.kind == "rotate" else 1.0
+            lines.append(f"{json.dumps(item.name)} = [{item.lower * scale!r}, {item.upper * scale!r}]")
+    return "\n".join(lines) + ("\n" if lines else "")
 
 
 def meters_per_unit(context, arm: bpy.types.Object) -> float:
@@ -215,12 +281,15 @@ def export_rig(context, arm: bpy.types.Object, mesh_obj: bpy.types.Object, filep
     if mesh_obj is None:
         raise RigExportError(f"no mesh is deformed by {arm.name!r} (an Armature modifier pointing to it)")
     bones, root = export_bones(arm, only_deform)
-    if not root_is_free(root):
-        raise RigExportError(
-            f"the root bone {root.name!r} must sit at the armature origin with identity rest orientation "
-            "(the service's solver seeds the hand through it); use Add Root Bone")
-    mpu = meters_per_unit(context, arm)
-    dofs = dof_spec(arm, bones, root, mpu)
+    mode, mode_warnings = resolve_dof_mode(arm, bones, root)
+    if mode == 'CHANNELS':
+        mpu = meters_per_unit(context, arm)
+        dofs = dof_spec(arm, bones, root, mpu)
+    else:
+        meters_per_unit(context, arm)  # the same checks (a uniform scale); the Xform carries the scale
+        unit = context.scene.unit_settings
+        mpu = float(unit.scale_length if unit.system != 'NONE' else 1.0)
+        dofs = None
 
     # export at the rest pose, only these two objects; restore the user's state afterwards
     view_layer = context.view_layer
@@ -248,14 +317,16 @@ def export_rig(context, arm: bpy.types.Object, mesh_obj: bpy.types.Object, filep
         for o in view_layer.objects:
             o.select_set(o in selected)
         view_layer.objects.active = active
-    info = add_dof_spec(filepath, arm, mesh_obj, bones, dofs, mpu)
-    info["warnings"] = export_warnings(arm, mesh_obj)
+    info = finish_export(filepath, arm, mesh_obj, bones, dofs, mpu, limits_text(arm) if dofs is None else "")
+    info["dof_mode"] = mode
+    info["warnings"] = mode_warnings + export_warnings(arm, mesh_obj, dofs)
     return info
 
 
-def add_dof_spec(filepath: str, arm, mesh_obj, bones, dofs, mpu: float) -> dict:
-    """Post-process the exported file with pxr: the DOF spec on the Skeleton, units, the mesh's
-    transform into skeleton space, and checks that the core will see Blender's topology."""
+def finish_export(filepath: str, arm, mesh_obj, bones, dofs, mpu: float, limits: str = "") -> dict:
+    """Post-process the exported file with pxr: bone names, units, the mesh's transform into
+    skeleton space, checks that the core will see Blender's topology, and the DOF spec on the
+    Skeleton (``dofs``; None: plain UsdSkel, with the edited ``limits`` TOML when given)."""
     p = pxr()
     Usd, UsdGeom, UsdSkel, Sdf, Gf, Vt, Tf = p.Usd, p.UsdGeom, p.UsdSkel, p.Sdf, p.Gf, p.Vt, p.Tf
     cached = Sdf.Layer.Find(filepath)
@@ -279,11 +350,14 @@ def add_dof_spec(filepath: str, arm, mesh_obj, bones, dofs, mpu: float) -> dict:
             raise RigExportError(f"cannot tell which bone the exported joint {t!r} is ({cands or 'none'})")
         names.append(cands[0])
     index = {n: i for i, n in enumerate(names)}
-    missing = [d["name"] for d in dofs if d["bone"] not in index]
-    if missing:
-        raise RigExportError(f"DOFs of bones that were not exported: {missing[:5]}")
-    root_name = dofs[0]["bone"]
-    dofs = sorted(dofs, key=lambda d: index[d["bone"]])  # stable: a joint's order is kept
+    if dofs is not None:
+        missing = [d["name"] for d in dofs if d["bone"] not in index]
+        if missing:
+            raise RigExportError(f"DOFs of bones that were not exported: {missing[:5]}")
+        root_name = dofs[0]["bone"]
+        dofs = sorted(dofs, key=lambda d: index[d["bone"]])  # stable: a joint's order is kept
+    else:
+        root_name = None
 
     # the skinned surface: carried into the skeleton's space (the core ignores prim transforms)
     skel_w = UsdGeom.Xformable(skel_prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
@@ -321,18 +395,27 @@ def add_dof_spec(filepath: str, arm, mesh_obj, bones, dofs, mpu: float) -> dict:
     def put(short, type_name, value):
         skel_prim.CreateAttribute(f"handretarget:{short}", type_name, custom=True).Set(value)
 
+    put("rigName", T.String, arm.name)
+    put("jointNames", T.StringArray, Vt.StringArray(names))  # the bones' own names (tokens are identifiers)
+    info = {"rig_name": arm.name, "meters_per_unit": mpu, "joints": names, "vertices": len(me.vertices),
+            "faces": len(core_triangles(me))}
+    if dofs is None:
+        put("metadata", T.String, json.dumps({"blender": {"armature": arm.name, "mesh": mesh_obj.name,
+                                                          "dof_mode": "HAND_MODEL"}}, sort_keys=True))
+        if limits:
+            put("dofLimits", T.String, limits)
+        stage.GetRootLayer().Save()
+        return info | {"dofs": None}
     axes = [(1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)]
     modes = {b.name: euler_mode(arm.pose.bones[b.name], b.name == root_name) for b in bones}
     metadata = {"blender": {
-        "armature": arm.name, "mesh": mesh_obj.name, "meters_per_unit": mpu,
+        "armature": arm.name, "mesh": mesh_obj.name, "meters_per_unit": mpu, "dof_mode": "CHANNELS",
         "rotation_modes": modes,
         "channels": {d["name"]: [d["bone"], d["channel"], d["axis"]] for d in dofs},
         "limit_sources": {d["name"]: d["source"] for d in dofs},
     }}
     put("specVersion", T.Int, SPEC_VERSION)
-    put("rigName", T.String, arm.name)
     put("metadata", T.String, json.dumps(metadata, sort_keys=True))
-    put("jointNames", T.StringArray, Vt.StringArray(names))
     put("dofNames", T.StringArray, Vt.StringArray([d["name"] for d in dofs]))
     put("dofJoints", T.IntArray, Vt.IntArray([index[d["bone"]] for d in dofs]))
     put("dofKinds", T.TokenArray, Vt.TokenArray([d["kind"] for d in dofs]))
@@ -341,8 +424,7 @@ def add_dof_spec(filepath: str, arm, mesh_obj, bones, dofs, mpu: float) -> dict:
     put("dofUpper", T.DoubleArray, Vt.DoubleArray([float(d["upper"]) for d in dofs]))
     put("dofRest", T.DoubleArray, Vt.DoubleArray([float(d["rest"]) for d in dofs]))
     stage.GetRootLayer().Save()
-    return {"rig_name": arm.name, "meters_per_unit": mpu, "dofs": [d["name"] for d in dofs],
-            "joints": names, "vertices": len(me.vertices), "faces": len(core_triangles(me))}
+    return info | {"dofs": [d["name"] for d in dofs]}
 
 
 def _normalise_weights(binding, mesh_obj, Vt):
@@ -366,9 +448,14 @@ def _normalise_weights(binding, mesh_obj, Vt):
     pv.Set(Vt.FloatArray(w))
 
 
-def export_warnings(arm, mesh_obj) -> list[str]:
+def export_warnings(arm, mesh_obj, dofs=None) -> list[str]:
     """Things the core will see differently from Blender (reported, not fatal)."""
     out = []
+    free = [d["name"] for d in dofs or () if d["source"] == "default" and d["kind"] == "rotate"
+            and not d["name"].startswith("root_")]
+    if free:
+        out.append(f"{len(free)} bone rotations have no limits (e.g. {free[0]}) and turn +-180 degrees: "
+                   "limit or lock them, or choose DOFs: Hand model for anatomical limits")
     for m in mesh_obj.modifiers:
         if m.type == 'ARMATURE' and m.object == arm and m.use_deform_preserve_volume:
             out.append("the Armature modifier preserves volume (dual quaternions); the service skins linearly")

@@ -17,6 +17,16 @@ class HAND_RETARGET_UL_curves(bpy.types.UIList):
             row.label(text=f"λa {item.lambda_a:.2f} λs {item.lambda_s:.2f}")
 
 
+class HAND_RETARGET_UL_dof_limits(bpy.types.UIList):
+    """The hand-model DOFs the service gave the rig; limits editable (sent with the next export)."""
+
+    def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index):
+        row = layout.row(align=True)
+        row.label(text=item.name, icon='CHECKMARK' if item.edited else 'BLANK1')
+        row.prop(item, "lower", text="")
+        row.prop(item, "upper", text="")
+
+
 class HAND_RETARGET_PT_panel(bpy.types.Panel):
     bl_label = "Hand Retarget"
     bl_space_type = 'VIEW_3D'
@@ -34,11 +44,18 @@ class HAND_RETARGET_PT_panel(bpy.types.Panel):
             box.label(text="Select a hand armature")
         else:
             box.label(text=f"{arm.name} / {mesh.name if mesh else 'no skinned mesh'}")
+            rs = arm.hand_retarget
+            box.prop(rs, "dof_mode")
+            box.prop_search(rs, "hand_root_bone", arm.data, "bones")
             row = box.row(align=True)
             row.operator("hand_retarget.export_rig", icon='EXPORT')
-            row.operator("hand_retarget.add_root_bone", text="", icon='BONE_DATA')
-            if arm.hand_retarget.rig_id:
-                box.label(text=f"uploaded {arm.hand_retarget.rig_id[:12]}")
+            if rs.dof_mode == 'CHANNELS':
+                row.operator("hand_retarget.add_root_bone", text="", icon='BONE_DATA')
+            if rs.rig_id:
+                box.label(text=f"uploaded {rs.rig_id[:12]} ({rs.exported_mode.replace('_', ' ').lower()} DOFs)")
+            if rs.dof_limits:
+                box.label(text="DOF limits (edits go with the next export)")
+                box.template_list("HAND_RETARGET_UL_dof_limits", "", rs, "dof_limits", rs, "dof_limit_index", rows=4)
 
         box = layout.box()
         box.label(text="Annotations", icon='GROUP_VERTEX')
@@ -108,7 +125,10 @@ class HAND_RETARGET_PT_panel(bpy.types.Panel):
             row = box.row()
             row.prop(s, "baked")
             row.prop(s, "import_object")
-            box.prop(s, "start_frame")
+            row = box.row()
+            row.prop(s, "start_frame")
+            row.prop(s, "use_clip_fps")
+            box.prop(s, "import_mode")
             box.operator("hand_retarget.import_result", icon='IMPORT')
 
 
@@ -124,7 +144,7 @@ def draw_status(self, context):
         self.layout.label(text=f"{text} {100 * s.job_progress:.0f}%")
 
 
-CLASSES = (HAND_RETARGET_UL_curves, HAND_RETARGET_PT_panel)
+CLASSES = (HAND_RETARGET_UL_curves, HAND_RETARGET_UL_dof_limits, HAND_RETARGET_PT_panel)
 
 
 def register():
