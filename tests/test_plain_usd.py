@@ -162,6 +162,17 @@ def test_a_hand_inside_a_body_skeleton_is_found_and_cut_out(files, core, hand, t
     assert (~kept_faces).sum() > 0 and all(np.asarray(rig.surface.faces)[~kept_faces].max(axis=1) == len(v_src) - 1)
     for i in np.nonzero(kept_faces)[0][::50]:
         assert list(v_src[rig.surface.faces[i]]) == list(file_tris[f_src[i]])  # corner order kept
+    # the cap is no skin of the user's mesh: a contact carried onto it is dropped, others stay
+    from retarget_core.transfer.atlas import TransferredContacts
+    from retarget_core.transfer.clip_transfer import off_caps
+
+    caps = np.nonzero(~kept_faces)[0]
+    n = 4
+    carried = TransferredContacts(face=np.array([0, caps[0], 7, caps[-1]]), barycentric=np.full((n, 3), 1 / 3),
+                                  landmark=np.zeros(n, int), curve=np.zeros(n, int),
+                                  dropped=np.array([False, False, True, False]), radius=np.zeros(n), angle=np.zeros(n))
+    assert off_caps(carried, rig).dropped.tolist() == [False, True, True, True]
+    assert off_caps(carried, core) is carried  # a hand that was never cut has no cap
     # two hands: said, and settled by naming one
     two = write_plain_usdskel(tmp_path / "two_hands.usda", **_body_arrays(hand, hands=2))
     with pytest.raises(InputError, match=r"2 hands.*--hand-root"):

@@ -193,6 +193,15 @@ def keep_main_shell(rig: Rig) -> Rig:
                          SURFACE_SOURCE: surface_source(rig, kept, used)})
 
 
+def cap_faces(rig: Rig) -> np.ndarray:
+    """(K,) ids of the surface triangles that close a cut (no triangle of the file's mesh):
+    they never receive contacts (transfer drops contacts carried onto them)."""
+    source = rig.metadata.get(SURFACE_SOURCE)
+    if not source:
+        return np.zeros(0, dtype=np.int64)
+    return np.nonzero(np.asarray(source["faces"]) < 0)[0]
+
+
 def surface_source(before: Rig, surface: SkinnedMesh, used: np.ndarray) -> dict:
     """Where each vertex and triangle of ``surface`` (cut or pruned from ``before``'s) comes
     from in the file's mesh, so that a tool holding that mesh (the Blender add-in) can carry

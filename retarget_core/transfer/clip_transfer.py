@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +10,7 @@ import numpy as np
 from ..errors import InputError
 from ..mesh.surface_points import SurfacePoints
 from ..pairing.dense import ContactPairs
+from ..rig.hand_cut import cap_faces
 from ..rig.model import Rig
 from .annotations import Annotations
 from .atlas import Atlas, TransferredContacts, get_atlas
@@ -47,7 +48,18 @@ def transfer_clip(pairs: ContactPairs, source: Rig, target: Rig, annotations: An
             f"{source.name!r} has {len(source.surface.faces)}", element="source rig")
     atlas = atlas_for(source, target, annotations, workers=workers, cache_dir=cache_dir)
     contacts = atlas.transfer(SurfacePoints(pairs.hand_face, pairs.hand_barycentric))
-    return ClipTransfer(atlas, pairs, contacts)
+    return ClipTransfer(atlas, pairs, off_caps(contacts, target))
+
+
+def off_caps(contacts: TransferredContacts, target: Rig) -> TransferredContacts:
+    """``contacts`` with those carried onto a cap of ``target`` (the triangles that close a hand
+    cut from a larger mesh, :func:`~retarget_core.rig.hand_cut.cap_faces`) dropped: a cap is no
+    skin of the user's mesh."""
+    caps = cap_faces(target)
+    on_cap = np.isin(contacts.face, caps) & ~contacts.dropped
+    if not on_cap.any():
+        return contacts
+    return replace(contacts, dropped=contacts.dropped | on_cap)
 
 
 def _spread(points: np.ndarray) -> float:
