@@ -25,7 +25,8 @@ from typing import Callable
 import numpy as np
 
 from .errors import InputError
-from .solve.problem import Problem, build_solver_state, solve_frames, solve_root_sequence
+from .solve.problem import (Problem, build_solver_state, follow_branch, frame_systems, frame_values, solve_frames,
+                            solve_root_sequence)
 
 Progress = Callable[[str, int, int], None]
 
@@ -201,6 +202,29 @@ class FrameRunner:
         sequentially from its seed in ``seeds``, the segments in parallel."""
         calls = [(np.asarray(frames, dtype=np.int64), seed) for frames, seed in zip(segments, seeds)]
         return self._run(solve_root_sequence, calls, sum(len(s) for s in segments), label)
+
+    def follow_branches(self, runs, seeds, currents, *, label: str = "coherence") -> list:
+        """:func:`~retarget_core.solve.problem.follow_branch` over each run of ``runs`` (frame
+        arrays) from its seed, against its frames' ``currents``; the runs in parallel, each
+        sequential (so the result does not depend on the worker count)."""
+        calls = [(np.asarray(r, dtype=np.int64), np.asarray(s, dtype=np.float64), np.asarray(c, dtype=np.float64))
+                 for r, s, c in zip(runs, seeds, currents)]
+        return self._run(follow_branch, calls, sum(len(r) for r in runs), label)
+
+    def _chunks(self, frames, qs, *extra):
+        frames = np.asarray(frames, dtype=np.int64)
+        qs = np.asarray(qs, dtype=np.float64)
+        chunk = CHUNK_FRAMES if self.pool is None and self.slots == 1 else max(4, len(frames) // (self.slots * 8) + 1)
+        return [(frames[k:k + chunk], qs[k:k + chunk], *extra) for k in range(0, len(frames), chunk)]
+
+    def systems(self, frames, qs, *, label: str = "curve polish") -> list:
+        """:func:`~retarget_core.solve.problem.frame_systems` of ``frames`` at poses ``qs``
+        (F, D), in frame order."""
+        return self._run(frame_systems, self._chunks(frames, qs), len(frames), label)
+
+    def values(self, frames, qs, *, label: str = "curve polish") -> list:
+        """:func:`~retarget_core.solve.problem.frame_values` of ``frames`` at ``qs`` (F, D)."""
+        return self._run(frame_values, self._chunks(frames, qs), len(frames), label)
 
     def close(self):
         if self.pool is not None:

@@ -1,7 +1,8 @@
 """The retargeting pipeline of the paper, top to bottom (sections "Dense Contact Pairing",
 "Hand Shape Matching", "Motion Retargeting" and the appendix "Motion Retargeting Details"):
 
-    pairing -> transfer -> targets -> root pass -> full pass -> filter -> refinement -> fit -> figures
+    pairing -> transfer -> targets -> root pass -> full pass -> coherence -> filter -> refinement -> fit
+    -> curve polish -> figures
 
 :func:`retarget` is the one entry for one run: the command line, the demo, the grid, compare,
 the benchmark and the service's job process all call it. What it computes depends on the
@@ -26,10 +27,12 @@ from .clip.format import Clip
 from .errors import InputError
 from .evaluate.metrics import contact_distance_per_frame, marker_error_per_frame
 from .execute import Executor, FrameRunner
-from .fit.splines import fit_trajectory
+from .fit.polish import polish_curves
+from .fit.splines import evaluate_curves, fit_trajectory
 from .inputs import RunInputs, frame_range
 from .mesh.surface_points import SurfacePoints
 from .pairing.dense import ContactPairs, pair_contacts
+from .refine.branches import branch_jumps, branch_runs
 from .refine.trajectory import lowpass_and_remove_peaks, refine_trajectory
 from .result import RetargetResult
 from .rig.anatomy import set_root_transform
@@ -81,18 +84,9 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
         # 2. contact transfer through the atlas of log-map charts; 3. per-frame targets
         t0 = time.perf_counter()
         executor.report("transfer", 0, 1)
-        transferred = transfer_clip(pairs, source, target, annotations, workers=executor.workers,
-                                    cache_dir=executor.cache_dir)
-        markers = marker_targets(clip, source, target, annotations)
-        if config.markers.scale_fingers:
-            markers = scale_finger_markers(markers, source, target)
-        contacts = contact_targets(clip, pairs, transferred.contacts, keep_source_gap=config.contacts.keep_source_gap)
+        problem, transferred = build_problem(clip, pairs, source, target, annotations, config, executor)
+        markers, contacts = problem.markers, problem.contacts
         timings["transfer"] = time.perf_counter() - t0
-        if len(markers.pair_target) < 3:
-            raise InputError("at least three marker pairs are needed to place the hand", element="markers")
-        problem = Problem(target, config, markers, contacts, clip.object_poses, clip.table_pose,
-                          clip.table_half_extents, clip.object_vertices, clip.object_faces)
-        method_objective(problem, "fingers")  # a baseline's missing markers are an input error, before any work
 
         reports = {}
         with executor.frame_runner(problem, client) as runner:
@@ -104,6 +98,10 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
             if config.passes.full:
                 q, reports["full"] = solve_pass(runner, np.arange(clip.n_frames), q, "full pass")
                 timings["full pass"] = reports["full"].seconds
+            # 5b. coherence: frames that left their neighbours' branch, re-solved from it
+            if config.passes.full and config.passes.coherence and clip.n_frames >= 2:
+                q, reports["coherence"] = coherence_pass(runner, problem, q)
+                timings["coherence"] = reports["coherence"].seconds
             # 6. low-pass and peak removal, re-solving the frames the filter moved
             if config.passes.filter and clip.n_frames >= 8:
                 t0 = time.perf_counter()
@@ -118,31 +116,42 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
                 q, reports["refine"] = refinement(runner, q, target, clip.fps, config)
                 unresolved = reports["refine"].unresolved
                 timings["refinement"] = time.perf_counter() - t0
+            # 8. one cubic B-spline per DOF, polished on the frames' objective
+            times = np.arange(clip.n_frames) / clip.fps
+            curves, fit_report = None, None
+            if config.passes.fit:
+                executor.report("spline fit", 0, 1)
+                t0 = time.perf_counter()
+                usable = int((~unresolved).sum(axis=0).min())
+                n_control = max(MIN_CONTROL_POINTS, min(n_control, usable))
+                fit_report = {}
+                curves = fit_trajectory(times, q, n_control, mask=~unresolved, optimize_knots=config.fit.optimize_knots,
+                                        limits=(target.lower, target.upper) if config.fit.respect_limits else None,
+                                        report=fit_report)
+                timings["fit"] = time.perf_counter() - t0
+                executor.report("spline fit", 1, 1)
+                if config.fit.polish_iterations > 0:
+                    curves, polish = polish_curves(runner, curves, times, target.lower, target.upper,
+                                                   iterations=config.fit.polish_iterations)
+                    fit_report["polish"] = polish.to_dict()
+                    timings["curve polish"] = polish.seconds
     finally:
         limits.restore_original_limits()
         if client is not None:
             client.close()
 
-    # 8. one cubic B-spline per DOF
-    times = np.arange(clip.n_frames) / clip.fps
-    curves, fit_report = None, None
-    if config.passes.fit:
-        executor.report("spline fit", 0, 1)
-        t0 = time.perf_counter()
-        usable = int((~unresolved).sum(axis=0).min())
-        n_control = max(MIN_CONTROL_POINTS, min(n_control, usable))
-        fit_report = {}
-        curves = fit_trajectory(times, q, n_control, mask=~unresolved, optimize_knots=config.fit.optimize_knots,
-                                limits=(target.lower, target.upper) if config.fit.respect_limits else None,
-                                report=fit_report)
-        timings["fit"] = time.perf_counter() - t0
-        executor.report("spline fit", 1, 1)
-
-    # 9. figures, at the solved frames (issue 20 moves them onto the delivered curves)
+    # 9. figures at what the user gets: the curves at the frame times (the solved frames' kept,
+    # labelled as such: a fit that cuts across a jump shows as the difference)
     t0 = time.perf_counter()
     kin = target.kinematics()
-    distance, count = contact_distance_per_frame(kin, q, contacts)
-    marker = marker_error_per_frame(kin, q, markers)
+    delivered = evaluate_curves(curves, times) if curves else q
+    distance, count = contact_distance_per_frame(kin, delivered, contacts)
+    marker = marker_error_per_frame(kin, delivered, markers)
+    if curves:
+        solved_distance, _ = contact_distance_per_frame(kin, q, contacts)
+        solved_marker = marker_error_per_frame(kin, q, markers)
+    else:
+        solved_distance, solved_marker = distance, marker
     timings["figures"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - start
     counts = run_counts(reports)
@@ -151,8 +160,11 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
     summary = {
         "frames": clip.n_frames, "dofs": target.n_dofs, "control_points": n_control if curves else None,
         "contact_frames": int(contact_frames.sum()),
-        "contact_distance_median_mm": float(np.median(distance[contact_frames])) if contact_frames.any() else None,
-        "marker_error_median_mm": float(np.nanmedian(marker)) if np.isfinite(marker).any() else None,
+        "figures_at": "delivered curves" if curves else "solved frames (no spline fit)",
+        "contact_distance_median_mm": _median(distance[contact_frames]),
+        "marker_error_median_mm": _median(marker),
+        "solved_contact_distance_median_mm": _median(solved_distance[contact_frames]),
+        "solved_marker_error_median_mm": _median(solved_marker),
         "failed_frames": len(counts["failed_frames"]), "unresolved_entries": int(unresolved.sum()),
         "fit_failures": len(fit_report["failures"]) if fit_report else 0,
         "transferred_share": (float(1 - transferred.contacts.dropped.mean())
@@ -208,6 +220,25 @@ def _check_inputs(clip, source, target, annotations, config, annotation_max_disp
         raise InputError(f"the clip is too short for the spline fit: {clip.n_frames} frames, at least {need} needed "
                          f"({why})", source="clip", element="n_frames")
     return config.n_control_points(clip.n_frames, clip.fps), annotations, remap
+
+
+def build_problem(clip: Clip, pairs: ContactPairs, source: Rig, target: Rig, annotations, config: RetargetConfig,
+                  executor: Executor):
+    """Steps 2 and 3: the paired contacts carried onto ``target`` through the atlas, the marker
+    and contact targets of every frame, and the per-frame problem the passes solve. Returns
+    (problem, the clip transfer)."""
+    transferred = transfer_clip(pairs, source, target, annotations, workers=executor.workers,
+                                cache_dir=executor.cache_dir)
+    markers = marker_targets(clip, source, target, annotations)
+    if config.markers.scale_fingers:
+        markers = scale_finger_markers(markers, source, target)
+    contacts = contact_targets(clip, pairs, transferred.contacts, keep_source_gap=config.contacts.keep_source_gap)
+    if len(markers.pair_target) < 3:
+        raise InputError("at least three marker pairs are needed to place the hand", element="markers")
+    problem = Problem(target, config, markers, contacts, clip.object_poses, clip.table_pose,
+                      clip.table_half_extents, clip.object_vertices, clip.object_faces)
+    method_objective(problem, "fingers")  # a baseline's missing markers are an input error, before any work
+    return problem, transferred
 
 
 # ---- the passes -------------------------------------------------------------------------------
@@ -282,6 +313,68 @@ def solve_pass(runner: FrameRunner, frames, seeds: np.ndarray, label: str, keyed
     return out, report
 
 
+#: Rounds of forward and backward sweeps of the coherence pass (each round re-detects the jumps).
+COHERENCE_ROUNDS = 3
+
+
+class CoherenceReport(PassReport):
+    """A :class:`PassReport` with the jumps found before and left after the pass, and the
+    frames whose solution was replaced."""
+
+    def __init__(self, frames: int = 0):
+        super().__init__(frames)
+        self.jumps_before, self.jumps_after, self.replaced = 0, 0, []
+
+
+def target_marker_points(problem: Problem, q: np.ndarray) -> np.ndarray:
+    """(T, Np, 3) the target side of every marker pair posed at q (T, D)."""
+    kin = problem.rig.kinematics()
+    m = problem.markers
+    binding = kin.bind(SurfacePoints(m.target_faces, m.target_barycentric))
+    return np.stack([kin.points(qf, binding)[m.pair_target] for qf in q])
+
+
+def coherence_pass(runner: FrameRunner, problem: Problem, q: np.ndarray):
+    """After the full pass, which solves every frame on its own: a step where the solved hand
+    turns or moves far more than the source does (:func:`~retarget_core.refine.branches.branch_jumps`)
+    is a frame that left its neighbours' branch. The frames after each jump are re-solved
+    seeded from the frame before it, one after the other, and the frames before it from the
+    frame after, keeping a new solution only when its objective is lower; a run stops at the
+    first frame that keeps its own. Rounds of both sweeps repeat while anything changes
+    (:data:`COHERENCE_ROUNDS` at most). Each run is sequential inside one worker and the runs
+    are fixed before they start, so the result does not depend on the worker count."""
+    t0 = time.perf_counter()
+    source_points = problem.markers.source_positions
+    q = q.copy()
+    report = CoherenceReport(0)
+    jumps = branch_jumps(target_marker_points(problem, q), source_points)
+    report.jumps_before = int(jumps.sum())
+    replaced = set()
+    for _ in range(COHERENCE_ROUNDS):
+        changed = False
+        for direction in (1, -1):
+            runs = branch_runs(jumps, direction)
+            if not runs:
+                continue
+            seeds = [q[r[0] - direction] for r in runs]
+            for f, qf, evals, error, better in runner.follow_branches(runs, seeds, [q[r] for r in runs]):
+                report.frames += 1
+                report.evaluations += evals
+                if error:
+                    report.failed.append((f, error))
+                if better:
+                    q[f] = qf
+                    replaced.add(f)
+                    changed = True
+            jumps = branch_jumps(target_marker_points(problem, q), source_points)
+        if not changed:
+            break
+    report.jumps_after = int(jumps.sum())
+    report.replaced = sorted(replaced)
+    report.seconds = time.perf_counter() - t0
+    return q, report
+
+
 def filter_pass(runner: FrameRunner, q: np.ndarray, rig: Rig, fps: float, config: RetargetConfig):
     """Paper: "re-solve for the estimates after applying low-pass and peak removal filters".
     Only the frames the filter moved beyond the re-solve tolerances are re-solved, regularised
@@ -319,6 +412,13 @@ def refinement(runner: FrameRunner, q: np.ndarray, rig: Rig, fps: float, config:
 
 
 # ---- reporting --------------------------------------------------------------------------------
+def _median(values: np.ndarray) -> float | None:
+    """The median of the finite values, None when there is none."""
+    values = np.asarray(values, dtype=np.float64)
+    values = values[np.isfinite(values)]
+    return float(np.median(values)) if len(values) else None
+
+
 def run_counts(reports: dict) -> dict:
     """Evaluations per frame and failed frames of each pass (root, full, filter), the
     refinement report (``RefinementReport.to_dict``) and every failed frame once."""
@@ -329,6 +429,9 @@ def run_counts(reports: dict) -> dict:
         passes[name] = {"frames": r.frames, "evaluations": r.evaluations,
                         "evaluations_per_frame": r.evaluations / r.frames if r.frames else 0.0,
                         "failed": [{"frame": int(f), "error": str(e)} for f, e in r.failed]}
+        if isinstance(r, CoherenceReport):
+            passes[name].update(jumps_before=r.jumps_before, jumps_after=r.jumps_after,
+                                replaced=[int(f) for f in r.replaced])
         for f, e in r.failed:
             failed.setdefault(int(f), str(e))
     return {"passes": passes, "refinement": reports["refine"].to_dict() if "refine" in reports else None,

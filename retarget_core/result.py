@@ -39,10 +39,11 @@ class RetargetResult:
     DOF (None when the fit pass is off); unresolved (T, D) entries still violating the
     acceleration check (left out of the fit); timings {stage: seconds}; counts: evaluations
     per frame per pass, failed frames with their error, refinement report; contact_distance_mm
-    (T,) median distance between the solved target contact points and their object points
-    (NaN on frames without contacts); contact_count (T,); marker_error_mm (T,) mean distance of
-    the target markers to the source markers (each marker counts once); summary: the figures
-    above in short; config: ``RetargetConfig.to_dict()``; unused_settings: the settings the
+    (T,) median distance between the target contact points and their object points at the
+    delivered curves (the solved frames without a fit; NaN on frames without contacts);
+    contact_count (T,); marker_error_mm (T,) mean distance of the target markers to the source
+    markers there (each marker counts once); summary: the figures above in short (``figures_at``
+    says where), with the solved frames' medians as ``solved_*``; config: ``RetargetConfig.to_dict()``; unused_settings: the settings the
     method does not use ({key: {value, why}}); frames: [start, end) of the input clip that was
     retargeted (times count from its start); provenance: project version and commit, sha256 of
     every input, the run configuration and the executor. ``rig`` and the object mesh / poses

@@ -35,7 +35,9 @@ def _median(setup, rig):
     proposal = propose(setup["source"], rig)
     result = retarget(RunInputs.of(setup["clip"], setup["source"], rig, proposal.annotations),
                       load_config(None, "default", {}), Executor(workers=1))
-    return result.summary["contact_distance_median_mm"], result
+    # the solved frames: what the hand's set-up decides (on this 0.38 s clip the 4-control-point
+    # delivered curve is tens of mm off for every hand alike, and README's figures say so)
+    return result.summary["solved_contact_distance_median_mm"], result
 
 
 @pytest.fixture(scope="module")

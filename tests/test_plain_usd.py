@@ -443,7 +443,8 @@ def retargeted(files, core, clip_file, tmp_path_factory):
 
 
 def test_plain_files_retarget_like_the_core_hand(retargeted):
-    medians = {k: r["summary"]["contact_distance_median_mm"] for k, (r, _) in retargeted.items()}
+    # the solved frames (see tests/test_foreign_retarget.py: this clip's delivered curve is not the point)
+    medians = {k: r["summary"]["solved_contact_distance_median_mm"] for k, (r, _) in retargeted.items()}
     assert all(np.isfinite(v) for v in medians.values()), medians
     for name in ("plain", "cm-yup-placed", "body"):
         assert len(retargeted[name][0]["dof_names"]) == len(retargeted["core"][0]["dof_names"])

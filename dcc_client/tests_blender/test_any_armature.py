@@ -22,7 +22,7 @@ from conftest import bpy, core, ext
 pytestmark = pytest.mark.usefixtures("addon")
 
 # the default solver on a short clip: the comparison is of two set-ups of one hand, not of speed
-SETTINGS = {"refinement.max_iterations": 4}
+SETTINGS = {"refinement.max_iterations": 4, "fit.control_points_per_second": 60.0}  # a 0.38 s clip
 PLACED_AT = (0.5, 0.0, 0.0)   # metres from the scene origin
 SCENE_FPS = 24
 POSE_TOL = 1e-4               # float32 SkelAnimation samples and bone matrices
@@ -245,9 +245,12 @@ def test_blenders_skin_is_the_cores_delivered_hand(imported, work):
 def test_contact_median_is_the_project_hands(imported, reference):
     mine, theirs = imported["doc"], reference
     assert len(mine["dof_names"]) == len(theirs["dof_names"])
-    a = mine["summary"]["contact_distance_median_mm"]
-    b = theirs["summary"]["contact_distance_median_mm"]
-    print(f"contact median: Rigify-style armature {a:.4f} mm, the project's plain hand {b:.4f} mm")
+    # the solved frames are what the set-up decides; the delivered curve of this 0.38 s clip
+    # moves with every small difference in them (printed: both)
+    a, b = (d["summary"]["solved_contact_distance_median_mm"] for d in (mine, theirs))
+    da, db = (d["summary"]["contact_distance_median_mm"] for d in (mine, theirs))
+    print(f"contact median, solved frames: Rigify-style armature {a:.4f} mm, the project's plain hand {b:.4f} mm; "
+          f"delivered curves: {da:.4f} and {db:.4f} mm")
     assert abs(a - b) <= 0.2, (a, b)
 
 
@@ -321,7 +324,7 @@ def test_a_hand_in_a_body_armature_keys_only_the_hand_and_a_wrist_target(body_im
         scene.frame_set(scene.frame_start + frame)
         bone = arm.matrix_world @ arm.pose.bones["DEF-forearm.R"].matrix
         assert np.abs(np.array(target.matrix_world) - np.array(bone)).max() < POSE_TOL, frame
-    a = doc["summary"]["contact_distance_median_mm"]
-    b = reference["summary"]["contact_distance_median_mm"]
-    print(f"contact median: hand in a body armature {a:.4f} mm, the project's plain hand {b:.4f} mm")
+    a, b = (d["summary"]["solved_contact_distance_median_mm"] for d in (doc, reference))
+    print(f"contact median, solved frames: hand in a body armature {a:.4f} mm, the project's plain hand {b:.4f} mm; "
+          f"delivered curves: {doc['summary']['contact_distance_median_mm']:.4f} mm")
     assert len(doc["dof_names"]) == len(reference["dof_names"]) and abs(a - b) <= 0.2, (a, b)

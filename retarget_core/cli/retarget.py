@@ -49,9 +49,11 @@ def _cmd_retarget(args) -> int:
     print(f"retargeted {args.clip} (frames {result.frames[0]}:{result.frames[1]}) onto {inputs.target_rig.name}: "
           f"{s['frames']} frames, {s['dofs']} DOFs, {s['control_points'] or 'no'} control points per DOF")
     print("  seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in result.timings.items()))
-    print(f"  median contact distance {_fmt_mm(s['contact_distance_median_mm'])} mm over {s['contact_frames']} "
-          f"contact frames; marker error {_fmt_mm(s['marker_error_median_mm'])} mm; failed frames "
-          f"{s['failed_frames']}; unresolved entries {s['unresolved_entries']}; fit failures {s['fit_failures']}")
+    print(f"  at the {s['figures_at']}: median contact distance {_fmt_mm(s['contact_distance_median_mm'])} mm over "
+          f"{s['contact_frames']} contact frames; marker error {_fmt_mm(s['marker_error_median_mm'])} mm")
+    print(f"  at the solved frames: median contact distance {_fmt_mm(s['solved_contact_distance_median_mm'])} mm; "
+          f"marker error {_fmt_mm(s['solved_marker_error_median_mm'])} mm; failed frames {s['failed_frames']}; "
+          f"unresolved entries {s['unresolved_entries']}; fit failures {s['fit_failures']}")
     for line in result.provenance.get("annotation_remap", {}).get("lines", []):
         print(f"  annotations: {line}")
     for key, v in result.unused_settings.items():

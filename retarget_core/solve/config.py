@@ -336,6 +336,9 @@ class Fit:
     control_points_per_second: float | None = 10.0
     optimize_knots: bool = False
     respect_limits: bool = True
+    #: Levenberg-Marquardt iterations polishing the fitted coefficients on the frames' own
+    #: objective (fit/polish.py; 0: the least-squares fit is delivered as it is)
+    polish_iterations: int = 0
 
     def n_control_points(self, n_frames: int, fps: float) -> int:
         """Control points for a clip of ``n_frames`` at ``fps``: the fixed count, or
@@ -356,11 +359,13 @@ class Fit:
 
 @dataclass
 class Passes:
-    """Which pipeline stages run: root-only pass, full-pose pass, filtering pass, acceleration
-    refinement, spline fit."""
+    """Which pipeline stages run: root-only pass, full-pose pass, coherence pass (frames that
+    left their neighbours' branch re-solved from it, kept when better), filtering pass,
+    acceleration refinement, spline fit."""
 
     root: bool = True
     full: bool = True
+    coherence: bool = True
     filter: bool = True
     refine: bool = True
     fit: bool = True
@@ -524,7 +529,7 @@ def _paper() -> RetargetConfig:
                               xtol_rel=1e-4, ftol_rel=0.0, gradient="analytic", fd_step=1e-3),
         refinement=Refinement(e_acc_angular=500.0, e_acc_linear=500.0, max_iterations=20),
         fit=Fit(control_points=None, control_points_per_second=10.0, optimize_knots=False, respect_limits=False),
-        passes=Passes(),
+        passes=Passes(coherence=False),  # the paper's frames stay independent to the end
         contacts=Contacts(keep_source_gap=False),
         markers=Markers(distance="squared"),
         sampling=Sampling(),
@@ -543,9 +548,12 @@ def _default() -> RetargetConfig:
     cfg.refinement.resolve_tolerance_linear = 0.05
     cfg.sampling.table_sample_stride = 3  # a third of the hand's vertices feel the table
     cfg.fit.respect_limits = True  # curves a rig (or a robot) can play back
+    cfg.fit.polish_iterations = 4  # the delivered curve scored on what the frames were solved on
     # a bounded marker pull: markers a hand of other proportions cannot meet stop fighting the contacts
     cfg.markers.distance = "huber"
     cfg.markers.huber_width = 0.2
+    # frames that left their neighbours' branch re-solved from it (pipeline.coherence_pass)
+    cfg.passes.coherence = True
     return cfg
 
 

@@ -17,6 +17,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from ..mesh.surface_points import SurfacePoints
+from ..refine.branches import JUMP_MIN_SHIFT
 from ..rig.model import Rig
 from .baselines import FingertipObjective, KeyvectorObjective, keyvector_beta
 from .config import RetargetConfig
@@ -170,3 +171,59 @@ def solve_frames(state: dict, frames, seeds, stage: str, keyed: bool = False) ->
                 sol = polished
         out.append((int(f), sol.q, evaluations, sol.error))
     return out
+
+
+def frame_value(state: dict, frame: int, q: np.ndarray, stage: str = "fingers") -> float:
+    """The objective of ``stage`` at pose ``q`` (D,) of ``frame``, with the prior toward the
+    rest pose as in the full pass and the root gauge anchored at ``q`` itself (zero there), so
+    values from different seeds compare and nothing a worker solved before leaks in."""
+    problem: Problem = state["problem"]
+    objective: FrameObjective = state[stage]
+    objective.set_frame(problem.frame_data(int(frame)))
+    objective.reference = problem.rig.rest_pose
+    objective.set_seed(np.asarray(q, dtype=np.float64))
+    objective.focus_samples(q)
+    value, _ = objective.value_and_grad(np.asarray(q, dtype=np.float64), want_grad=False)
+    return float(value)
+
+
+def follow_branch(state: dict, frames, seed, current, gap: float = JUMP_MIN_SHIFT) -> list:
+    """Re-solve the run ``frames`` (in order) each seeded from the solution before it (the
+    first from ``seed`` (D,)), keeping a new solution only when its objective is lower than
+    that of the frame's ``current`` one (F, D). The run goes on while the frame's own solution
+    was on another branch (a marker point more than ``gap`` metres from the new one) and stops
+    at the first frame that keeps its own or was on this branch already. Returns
+    [(frame, q, evaluations, error, improved)] for the frames visited."""
+    problem: Problem = state["problem"]
+    kin = problem.rig.kinematics()
+    m = problem.markers
+    binding = kin.bind(SurfacePoints(m.target_faces, m.target_barycentric))
+    out = []
+    for f, mine in zip(frames, current):
+        mine = np.asarray(mine, dtype=np.float64)
+        (_, q, evals, error), = solve_frames(state, [f], [seed], "fingers")
+        better = not error and frame_value(state, f, q) < frame_value(state, f, mine)
+        out.append((int(f), q if better else mine, evals, error, bool(better)))
+        if not better or np.linalg.norm(kin.points(q, binding) - kin.points(mine, binding), axis=1).max() <= gap:
+            break
+        seed = q
+    return out
+
+
+def frame_systems(state: dict, frames, qs) -> list:
+    """At pose ``qs[i]`` (F, D) of each frame: (frame, full objective value, then the
+    Gauss-Newton system of its least-squares form: sum r^2, J^T r (D,), J^T J (D, D)), with
+    the prior toward the rest pose as in the full pass. What the polish of the delivered
+    curves (fit/polish.py) sums over frames."""
+    objective: FrameObjective = state["fingers"]
+    out = []
+    for f, q in zip(frames, qs):
+        value = frame_value(state, int(f), q)
+        cost, g, h = objective.normal_equations(np.asarray(q, dtype=np.float64))
+        out.append((int(f), value, cost, g, h))
+    return out
+
+
+def frame_values(state: dict, frames, qs) -> list:
+    """[(frame, full objective value at qs[i])] (see :func:`frame_value`)."""
+    return [(int(f), frame_value(state, int(f), q)) for f, q in zip(frames, qs)]

@@ -1,0 +1,75 @@
+"""The polish of the delivered curves (fit/polish.py): the coefficient system against finite
+differences, the banded layout against the dense one, and a polish that never scores worse,
+stays within the limits and is the same for any worker count."""
+
+import numpy as np
+import pytest
+
+from retarget_core.execute import Executor
+from retarget_core.fit.polish import CoefficientLayout, basis_matrix, coefficient_system, polish_curves
+from retarget_core.fit.splines import BSplineCurve, evaluate_curves, fit_trajectory
+
+
+def _curves(problem, q):
+    rig = problem.rig
+    times = np.arange(len(q)) / 120.0
+    return fit_trajectory(times, q, 6, limits=(rig.lower, rig.upper)), times
+
+
+def test_basis_matrix_reproduces_the_curve():
+    knots = np.r_[[0.0] * 4, 0.3, 0.5, [1.0] * 4]
+    c = BSplineCurve(knots, np.array([0.2, -1.0, 0.5, 2.0, 0.1, -0.3]))
+    t = np.linspace(-0.1, 1.1, 37)
+    np.testing.assert_allclose(basis_matrix(c, t) @ c.coeffs, c(t), atol=1e-12)
+
+
+def test_the_coefficient_system_is_the_gradient_of_the_summed_least_squares_cost(solved_demo):
+    problem, _, q = solved_demo
+    q = q[:12]
+    curves, times = _curves(problem, q)
+    lay = CoefficientLayout(curves, times)
+    frames = np.arange(len(times))
+    flat = np.concatenate([c.coeffs for c in curves])
+
+    def systems_at(c):
+        split = [c[lay.offsets[d]:lay.offsets[d + 1]] for d in range(len(curves))]
+        poses = evaluate_curves([BSplineCurve(x.knots, s, x.degree) for x, s in zip(curves, split)], times)
+        with Executor(workers=1).frame_runner(problem) as runner:
+            return runner.systems(frames, poses)
+
+    base = systems_at(flat)
+    ab, g = coefficient_system(base, lay.columns, lay.lifts, lay.n, lay.band)
+    # the banded J^T J equals the dense sum of A_f^T (J^T J)_f A_f
+    dense = np.zeros((lay.n, lay.n))
+    for (_, _, _, _, hf), cols, a in zip(base, lay.columns, lay.lifts):
+        dense[np.ix_(cols, cols)] += a.T @ hf @ a
+    for r in range(lay.band + 1):
+        np.testing.assert_allclose(ab[lay.band - r, r:], np.diag(dense, r), rtol=1e-10, atol=1e-9)
+    assert np.abs(np.triu(dense, lay.band + 1)).max() == 0.0
+    # d(sum r^2)/dc = 2 J^T r, by central differences on a few coefficients
+    rng = np.random.default_rng(3)
+    for k in rng.choice(lay.n, size=5, replace=False):
+        h = 1e-6
+        up, down = flat.copy(), flat.copy()
+        up[k] += h
+        down[k] -= h
+        fd = (sum(s[2] for s in systems_at(up)) - sum(s[2] for s in systems_at(down))) / (2 * h)
+        assert fd == pytest.approx(2 * g[lay.position[k]], rel=1e-4, abs=1e-3), k
+
+
+def test_polish_never_scores_worse_stays_in_limits_and_ignores_the_worker_count(solved_demo):
+    problem, _, q = solved_demo
+    rig = problem.rig
+    curves, times = _curves(problem, q)
+    out = {}
+    for workers in (1, 2):
+        with Executor(workers=workers).frame_runner(problem) as runner:
+            out[workers] = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=3)
+    polished, report = out[1]
+    assert report.accepted >= 1 and report.objective_after < report.objective_before
+    assert report.objective_after <= min(report.history)  # only steps that scored better were kept
+    for c, before, lo, hi in zip(polished, curves, rig.lower, rig.upper):
+        assert lo - 1e-12 <= c.coeffs.min() and c.coeffs.max() <= hi + 1e-12
+        np.testing.assert_array_equal(c.knots, before.knots)  # only the coefficients move
+    for a, b in zip(polished, out[2][0]):
+        np.testing.assert_array_equal(a.coeffs, b.coeffs)
