@@ -10,8 +10,9 @@ bpy environment pins numpy < 2 and cannot import retarget_core, so files pass be
                                                   the demo source hand
     python core_side.py hand OUT_DIR              the demo target hand as arrays (hand.json: joints,
                                                   their rest origins, surface, skin weights) for a
-                                                  test to build its own armature from, and as
-                                                  plain UsdSkel (demo_plain.usda)
+                                                  test to build its own armature from, as
+                                                  plain UsdSkel (demo_plain.usda), and a 120-frame
+                                                  grasp window at real speed (grasp_clip.npz)
 """
 
 from __future__ import annotations
@@ -117,7 +118,13 @@ def hand(out: Path) -> None:
         "joints": rig.joint_names, "parents": [j.parent for j in rig.joints],
         "origins": world[:, :3, 3].tolist(), "vertices": s.vertices.tolist(), "faces": s.faces.tolist(),
         "weights": weights}))
-    print(json.dumps({"joints": rig.n_joints, "vertices": int(s.n_vertices)}))
+    from retarget_core.clip.demo import grasp_window, make_demo_clip, source_rig
+
+    # a real-speed window (the grasp, 1 s at 120 fps): its delivered curve is a figure worth comparing
+    clip = grasp_window(make_demo_clip("bottle_pick_place", resolution=SOURCE_RESOLUTION,
+                                       rig=source_rig(SOURCE_RESOLUTION)), 120)
+    clip.save(out / "grasp_clip.npz")
+    print(json.dumps({"joints": rig.n_joints, "vertices": int(s.n_vertices), "frames": int(clip.n_frames)}))
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ from conftest import bpy, core, ext
 pytestmark = pytest.mark.usefixtures("addon")
 
 # the default solver on a short clip: the comparison is of two set-ups of one hand, not of speed
-SETTINGS = {"refinement.max_iterations": 4, "fit.control_points_per_second": 60.0}  # a 0.38 s clip
+SETTINGS = {"refinement.max_iterations": 4}
 PLACED_AT = (0.5, 0.0, 0.0)   # metres from the scene origin
 SCENE_FPS = 24
 POSE_TOL = 1e-4               # float32 SkelAnimation samples and bone matrices
@@ -99,7 +99,7 @@ def build_rigify_armature(hand: dict, *, location=PLACED_AT, seed: int = 3):
 def hand(work):
     folder = work / "any_armature"
     core("hand", folder)
-    return json.loads((folder / "hand.json").read_text()), folder / "demo_plain.usda"
+    return json.loads((folder / "hand.json").read_text()), folder / "demo_plain.usda", folder / "grasp_clip.npz"
 
 
 @pytest.fixture(scope="module")
@@ -109,11 +109,12 @@ def client(addon, service):
 
 
 @pytest.fixture(scope="module")
-def reference(client, hand, inputs):
-    """The project's own hand as plain UsdSkel, through the service with the same settings."""
+def reference(client, hand):
+    """The project's own hand as plain UsdSkel, through the service with the same settings, on a
+    120-frame grasp window at real speed."""
     rig = client.upload("rig", hand[1])
     annotations = client.propose_annotations(rig["id"])
-    clip = client.upload("clip", inputs["clip"])
+    clip = client.upload("clip", hand[2])
     job = client.submit(clip=clip["id"], rig=rig["id"], annotations=annotations["id"], overrides=SETTINGS,
                         evaluate=False)
     final = client.wait(job["id"], timeout=900, poll=0.2)
@@ -121,7 +122,7 @@ def reference(client, hand, inputs):
     return json.loads(client.artifact(job["id"], "result.json"))
 
 
-def retarget_with_the_addon(client, arm, inputs) -> dict:
+def retarget_with_the_addon(client, arm, clip) -> dict:
     """Export, propose, submit, follow and import with the add-in's operators, as an animator
     presses them; the job's id, result.json and where its layer was put."""
     assert 'FINISHED' in bpy.ops.hand_retarget.export_rig()
@@ -129,7 +130,7 @@ def retarget_with_the_addon(client, arm, inputs) -> dict:
     assert rs.exported_mode == 'HAND_MODEL' and len(rs.rig_id) == 64
     assert 'FINISHED' in bpy.ops.hand_retarget.propose_annotations()
     s = bpy.context.scene.hand_retarget
-    s.clip_path, s.overrides, s.evaluate, s.auto_import = str(inputs["clip"]), json.dumps(SETTINGS), False, True
+    s.clip_path, s.overrides, s.evaluate, s.auto_import = str(clip), json.dumps(SETTINGS), False, True
     assert 'FINISHED' in bpy.ops.hand_retarget.submit()
     ext("jobs").drive(timeout=900)
     assert s.job_state == "succeeded", s.job_message
@@ -140,10 +141,10 @@ def retarget_with_the_addon(client, arm, inputs) -> dict:
 
 
 @pytest.fixture(scope="module")
-def imported(client, hand, inputs):
+def imported(client, hand):
     """The whole way on the Rigify-style armature, through the operators."""
     arm, mesh = build_rigify_armature(hand[0])
-    return dict(arm=arm, mesh=mesh, **retarget_with_the_addon(client, arm, inputs))
+    return dict(arm=arm, mesh=mesh, **retarget_with_the_addon(client, arm, hand[2]))
 
 
 def _fcurves(arm):
@@ -245,13 +246,12 @@ def test_blenders_skin_is_the_cores_delivered_hand(imported, work):
 def test_contact_median_is_the_project_hands(imported, reference):
     mine, theirs = imported["doc"], reference
     assert len(mine["dof_names"]) == len(theirs["dof_names"])
-    # the solved frames are what the set-up decides; the delivered curve of this 0.38 s clip
-    # moves with every small difference in them (printed: both)
-    a, b = (d["summary"]["solved_contact_distance_median_mm"] for d in (mine, theirs))
-    da, db = (d["summary"]["contact_distance_median_mm"] for d in (mine, theirs))
-    print(f"contact median, solved frames: Rigify-style armature {a:.4f} mm, the project's plain hand {b:.4f} mm; "
-          f"delivered curves: {da:.4f} and {db:.4f} mm")
-    assert abs(a - b) <= 0.2, (a, b)
+    # at the delivered curves (what the animator gets) and at the solved frames
+    a, b = (d["summary"]["contact_distance_median_mm"] for d in (mine, theirs))
+    sa, sb = (d["summary"]["solved_contact_distance_median_mm"] for d in (mine, theirs))
+    print(f"contact median, delivered curves: Rigify-style armature {a:.4f} mm, the project's plain hand {b:.4f} mm; "
+          f"solved frames: {sa:.4f} and {sb:.4f} mm")
+    assert abs(a - b) <= 0.2 and abs(sa - sb) <= 0.2, (a, b, sa, sb)
 
 
 def test_reimport_as_nla_strip_then_replace(imported):
@@ -304,10 +304,10 @@ def build_body_armature(hand: dict):
 
 
 @pytest.fixture(scope="module")
-def body_imported(client, hand, inputs):
+def body_imported(client, hand):
     arm, _ = build_body_armature(hand[0])
     arm.hand_retarget.hand_root_bone = "DEF-forearm.R"
-    return dict(arm=arm, **retarget_with_the_addon(client, arm, inputs))
+    return dict(arm=arm, **retarget_with_the_addon(client, arm, hand[2]))
 
 
 def test_a_hand_in_a_body_armature_keys_only_the_hand_and_a_wrist_target(body_imported, reference):
@@ -324,7 +324,6 @@ def test_a_hand_in_a_body_armature_keys_only_the_hand_and_a_wrist_target(body_im
         scene.frame_set(scene.frame_start + frame)
         bone = arm.matrix_world @ arm.pose.bones["DEF-forearm.R"].matrix
         assert np.abs(np.array(target.matrix_world) - np.array(bone)).max() < POSE_TOL, frame
-    a, b = (d["summary"]["solved_contact_distance_median_mm"] for d in (doc, reference))
-    print(f"contact median, solved frames: hand in a body armature {a:.4f} mm, the project's plain hand {b:.4f} mm; "
-          f"delivered curves: {doc['summary']['contact_distance_median_mm']:.4f} mm")
+    a, b = (d["summary"]["contact_distance_median_mm"] for d in (doc, reference))
+    print(f"contact median, delivered curves: hand in a body armature {a:.4f} mm, the project's plain hand {b:.4f} mm")
     assert len(doc["dof_names"]) == len(reference["dof_names"]) and abs(a - b) <= 0.2, (a, b)
