@@ -176,7 +176,8 @@ class FrameRunner:
                 part = function(_WORKER, *args)
                 results += part
                 done += len(part)
-                self.executor.report(stage, done, total)
+                if stage:
+                    self.executor.report(stage, done, total)
             return results
         futures = {self._submit(function, *args): k for k, args in enumerate(calls)}
         parts = [None] * len(futures)
@@ -184,7 +185,8 @@ class FrameRunner:
             k = futures[fut]
             parts[k] = self._result(fut, function, calls[k])
             done += len(parts[k])
-            self.executor.report(stage, done, total)
+            if stage:  # None: the caller reports its own progress (passes that call many times)
+                self.executor.report(stage, done, total)
         return [r for part in parts for r in part]
 
     def solve(self, frames, seeds, *, stage: str, keyed: bool = False, label: str = "") -> list:
@@ -203,7 +205,7 @@ class FrameRunner:
         calls = [(np.asarray(frames, dtype=np.int64), seed) for frames, seed in zip(segments, seeds)]
         return self._run(solve_root_sequence, calls, sum(len(s) for s in segments), label)
 
-    def follow_branches(self, runs, seeds, currents, *, label: str = "coherence") -> list:
+    def follow_branches(self, runs, seeds, currents, *, label: str | None = None) -> list:
         """:func:`~retarget_core.solve.problem.follow_branch` over each run of ``runs`` (frame
         arrays) from its seed, against its frames' ``currents``; the runs in parallel, each
         sequential (so the result does not depend on the worker count)."""
@@ -217,12 +219,12 @@ class FrameRunner:
         chunk = CHUNK_FRAMES if self.pool is None and self.slots == 1 else max(4, len(frames) // (self.slots * 8) + 1)
         return [(frames[k:k + chunk], qs[k:k + chunk], *extra) for k in range(0, len(frames), chunk)]
 
-    def systems(self, frames, qs, *, label: str = "curve polish") -> list:
+    def systems(self, frames, qs, *, label: str | None = None) -> list:
         """:func:`~retarget_core.solve.problem.frame_systems` of ``frames`` at poses ``qs``
         (F, D), in frame order."""
         return self._run(frame_systems, self._chunks(frames, qs), len(frames), label)
 
-    def values(self, frames, qs, *, label: str = "curve polish") -> list:
+    def values(self, frames, qs, *, label: str | None = None) -> list:
         """:func:`~retarget_core.solve.problem.frame_values` of ``frames`` at ``qs`` (F, D)."""
         return self._run(frame_values, self._chunks(frames, qs), len(frames), label)
 

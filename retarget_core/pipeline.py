@@ -99,7 +99,8 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
                 q, reports["full"] = solve_pass(runner, np.arange(clip.n_frames), q, "full pass")
                 timings["full pass"] = reports["full"].seconds
             # 5b. coherence: frames that left their neighbours' branch, re-solved from it
-            if config.passes.full and config.passes.coherence and clip.n_frames >= 2:
+            # (the contacts method only: a baseline keeps the root pass's root, see solve/baselines.py)
+            if config.passes.full and config.passes.coherence and clip.n_frames >= 2 and config.method == "contacts":
                 q, reports["coherence"] = coherence_pass(runner, problem, q)
                 timings["coherence"] = reports["coherence"].seconds
             # 6. low-pass and peak removal, re-solving the frames the filter moved
@@ -130,7 +131,7 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
                                         report=fit_report)
                 timings["fit"] = time.perf_counter() - t0
                 executor.report("spline fit", 1, 1)
-                if config.fit.polish_iterations > 0:
+                if config.fit.polish_iterations > 0 and config.method == "contacts":
                     curves, polish = polish_curves(runner, curves, times, target.lower, target.upper,
                                                    iterations=config.fit.polish_iterations)
                     fit_report["polish"] = polish.to_dict()
@@ -350,7 +351,8 @@ def coherence_pass(runner: FrameRunner, problem: Problem, q: np.ndarray):
     jumps = branch_jumps(target_marker_points(problem, q), source_points)
     report.jumps_before = int(jumps.sum())
     replaced = set()
-    for _ in range(COHERENCE_ROUNDS):
+    for round_ in range(COHERENCE_ROUNDS):
+        runner.executor.report("coherence", round_, COHERENCE_ROUNDS)
         changed = False
         for direction in (1, -1):
             runs = branch_runs(jumps, direction)
@@ -369,6 +371,7 @@ def coherence_pass(runner: FrameRunner, problem: Problem, q: np.ndarray):
             jumps = branch_jumps(target_marker_points(problem, q), source_points)
         if not changed:
             break
+    runner.executor.report("coherence", COHERENCE_ROUNDS, COHERENCE_ROUNDS)
     report.jumps_after = int(jumps.sum())
     report.replaced = sorted(replaced)
     report.seconds = time.perf_counter() - t0

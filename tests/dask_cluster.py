@@ -46,7 +46,10 @@ class Cluster:
     def _spawn(self, name, args):
         log = open(self.folder / f"{name}-{len(self.procs)}.log", "wb")
         # scratch space (lock files, spilled data) in the test's folder, not the system temp dir
-        env = dict(os.environ, DASK_TEMPORARY_DIRECTORY=str(self.folder / "scratch"))
+        # the whole transition log: a test reads the story of a full-pass chunk after the later
+        # passes (coherence, curve polish) have run many small tasks
+        env = dict(os.environ, DASK_TEMPORARY_DIRECTORY=str(self.folder / "scratch"),
+                   DASK_DISTRIBUTED__ADMIN__LOW_LEVEL_LOG_LENGTH="1000000")
         proc = subprocess.Popen([str(DASK), *args], stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
                                 cwd=self.folder, env=env)
         log.close()

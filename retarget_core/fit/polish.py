@@ -104,7 +104,8 @@ def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: 
     systems = runner.systems(frames, poses(coeffs))
     current = float(sum(s[1] for s in systems))
     report.objective_before = current
-    for _ in range(max(0, int(iterations))):
+    for it in range(max(0, int(iterations))):
+        runner.executor.report("curve polish", it, int(iterations))
         report.iterations += 1
         ab, g = coefficient_system(systems, columns, lifts, n, band)
         x = coeffs[order]
@@ -147,6 +148,7 @@ def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: 
         if not improved:
             break
         systems = runner.systems(frames, poses(coeffs))
+    runner.executor.report("curve polish", int(iterations), int(iterations))
     report.objective_after = current
     report.seconds = time.perf_counter() - t0
     return _with(curves, coeffs, offsets), report

@@ -64,6 +64,7 @@ refinement.resolve_tolerance_angular   [0, 360]           deg
 refinement.resolve_tolerance_linear    [0, 1000]          cm
 fit.control_points                     [4, 10000]
 fit.control_points_per_second          (0, 120]           per second of clip
+fit.polish_iterations                  [0, 100]           Levenberg-Marquardt steps
 sampling.*_sample_stride               [1, 1000]          vertices
 ====================================== ================== ===================================
 
@@ -156,6 +157,7 @@ BOUNDS: dict[str, tuple[float, float, bool]] = {
     "refinement.resolve_tolerance_linear": (0.0, 1000.0, False),
     "fit.control_points": (MIN_CONTROL_POINTS, 10_000, False),
     "fit.control_points_per_second": (0.0, 120.0, True),
+    "fit.polish_iterations": (0, 100, False),
     "sampling.table_sample_stride": (1, 1000, False),
     "sampling.penetration_sample_stride": (1, 1000, False),
 }
