@@ -193,11 +193,7 @@ class FrameRunner:
         """Solve ``frames`` (F,) independently from ``seeds`` (F, D) with the objective of
         ``stage`` ("root" / "fingers"); [(frame, q, evaluations, error)] in frame order.
         ``label``: the progress stage name."""
-        frames = np.asarray(frames, dtype=np.int64)
-        seeds = np.asarray(seeds, dtype=np.float64)
-        chunk = CHUNK_FRAMES if self.pool is None and self.slots == 1 else max(4, len(frames) // (self.slots * 8) + 1)
-        calls = [(frames[k:k + chunk], seeds[k:k + chunk], stage, keyed) for k in range(0, len(frames), chunk)]
-        return self._run(solve_frames, calls, len(frames), label or stage)
+        return self._run(solve_frames, self._chunks(frames, seeds, stage, keyed), len(frames), label or stage)
 
     def solve_root_sequences(self, segments, seeds, *, label: str = "root pass") -> list:
         """The root-only pass over ``segments`` (a list of consecutive frame arrays), each solved
@@ -214,6 +210,7 @@ class FrameRunner:
         return self._run(follow_branch, calls, sum(len(r) for r in runs), label)
 
     def _chunks(self, frames, qs, *extra):
+        """Calls of (frames, qs (F, D), *extra) in chunks sized for the workers."""
         frames = np.asarray(frames, dtype=np.int64)
         qs = np.asarray(qs, dtype=np.float64)
         chunk = CHUNK_FRAMES if self.pool is None and self.slots == 1 else max(4, len(frames) // (self.slots * 8) + 1)
