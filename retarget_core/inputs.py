@@ -3,8 +3,9 @@ the frame range, each with the sha256 of what it was read from (provenance).
 
 :func:`load_inputs` reads them from files or demo names (what the command line, the service's
 job process and the tools call); :meth:`RunInputs.of` wraps objects already in memory (the
-demo, the grid, tests). A clip's own ``source_rig`` field may only name a demo hand: a path
-stored inside an untrusted clip is never opened (give the source rig explicitly instead).
+demo, the grid, tests). A clip's own ``source_rig`` field names a demo hand or a rig file beside
+the clip whose sha256 it records (:func:`clip_source_rig`); no other path stored inside an
+untrusted clip is ever opened.
 """
 
 from __future__ import annotations
@@ -158,16 +159,17 @@ def resolve_rig_source(spec: str, **load_options) -> tuple[Rig, dict]:
     return rig, {"path": str(Path(spec).resolve()), "sha256": file_sha256(spec)}
 
 
-def clip_source_rig(clip: Clip) -> str:
-    """The demo hand a clip names as its source (``DEFAULT_SOURCE_RIG`` when it names none).
-    A clip is untrusted input: a file path in its ``source_rig`` field is refused, never
-    opened."""
+def clip_source_rig(clip: Clip, clip_path=None) -> str:
+    """The source rig a clip records: a demo hand (``DEFAULT_SOURCE_RIG`` when it names none), or
+    the rig file an import wrote beside it (a GRAB clip's MANO rig), returned as its path.
+
+    A clip is untrusted input, so a recorded file is used only when ``clip_path`` (where the clip
+    was read from) is given, the recorded path is relative and stays inside the clip's folder, and
+    the file's sha256 is the one the clip records; anything else is refused, never opened. The
+    service passes no path: it resolves a recorded rig by its hash among the owner's assets."""
     spec = clip.source_rig or DEFAULT_SOURCE_RIG
     if not str(spec).startswith("demo:"):
-        raise InputError(f"the clip names its source rig {spec!r}, which is not a demo hand; a clip may only name "
-                         "a demo hand (demo:NAME): give the rig the clip was made with explicitly "
-                         "(--source-rig on the command line, source_rig in a job request)",
-                         source="clip", element="source_rig")
+        return _recorded_rig_file(clip, spec, clip_path)
     name, _, res = spec.partition("@")
     lo, hi = CLIP_DEMO_RESOLUTIONS
     try:
@@ -185,6 +187,31 @@ def clip_source_rig(clip: Clip) -> str:
     return spec
 
 
+def _recorded_rig_file(clip: Clip, spec: str, clip_path) -> str:
+    from .rig.io import USD_SUFFIXES
+
+    settle = "or give the source rig explicitly (--source-rig on the command line, source_rig in a job request)"
+    if clip_path is None or not clip.source_rig_sha256:
+        raise InputError(f"the clip names its source rig {spec!r}, which is not a demo hand; a clip may name a rig "
+                         f"file only beside itself with the file's sha256 (as import-grab writes it): {settle}",
+                         source="clip", element="source_rig")
+    relative = Path(spec)
+    if relative.is_absolute() or ".." in relative.parts or relative.suffix.lower() not in USD_SUFFIXES:
+        raise InputError(f"the clip names its source rig {spec!r}: a recorded rig must be a USD file in the clip's "
+                         f"own folder (a relative path without '..'); {settle}", source=str(clip_path),
+                         element="source_rig")
+    path = Path(clip_path).resolve().parent / relative
+    if not path.is_file():
+        raise InputError(f"the clip's source rig {spec!r} is not beside the clip (looked for {path}): keep the rig "
+                         f"import-grab wrote with the clip, {settle}", source=str(clip_path), element="source_rig")
+    digest = file_sha256(path)
+    if digest != clip.source_rig_sha256:
+        raise InputError(f"the clip's source rig {path} has changed since the clip was made (sha256 {digest[:12]}..., "
+                         f"the clip records {clip.source_rig_sha256[:12]}...): re-run import-grab, {settle}",
+                         source=str(clip_path), element="source_rig")
+    return str(path)
+
+
 def load_inputs(clip, rig, annotations, *, source_rig=None, frames=None,
                 annotation_max_displacement: float = DEFAULT_MAX_DISPLACEMENT, target_options: dict | None = None,
                 **rig_options) -> RunInputs:
@@ -198,7 +225,7 @@ def load_inputs(clip, rig, annotations, *, source_rig=None, frames=None,
     only (``root_body`` of an MJCF hand, ``mapping`` for a plain UsdSkel hand's DOFs)."""
     loaded = load_clip(clip)
     sources = {"clip": {"path": str(Path(clip).resolve()), "sha256": file_sha256(clip)}}
-    source, sources["source_rig"] = resolve_rig_source(source_rig or clip_source_rig(loaded), **rig_options)
+    source, sources["source_rig"] = resolve_rig_source(source_rig or clip_source_rig(loaded, clip), **rig_options)
     target, sources["target_rig"] = resolve_rig_source(rig, **(rig_options | {k: v for k, v in (target_options or {}).items()
                                                                              if v is not None}))
     ann = load_annotations(annotations)

@@ -36,6 +36,7 @@ from .refine.branches import branch_jumps, branch_runs
 from .refine.trajectory import lowpass_and_remove_peaks, refine_trajectory
 from .result import RetargetResult
 from .rig.anatomy import set_root_transform
+from .rig.hand_cut import surface_matches_hand
 from .rig.model import Rig
 from .solve.config import MIN_CONTROL_POINTS, RetargetConfig
 from .solve.problem import Problem, method_objective, unused_settings
@@ -170,8 +171,13 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
         "fit_failures": len(fit_report["failures"]) if fit_report else 0,
         "transferred_share": (float(1 - transferred.contacts.dropped.mean())
                               if len(transferred.contacts.dropped) else 1.0),
+        "unmapped_contacts": int(transferred.contacts.unmapped.sum()) if transferred.contacts.unmapped is not None else 0,
         "seconds": timings["total"],
     }
+    if summary["unmapped_contacts"]:
+        logger.warning("%d of %d source contacts lie where no log-map chart of the source hand is one-to-one "
+                       "(its mesh is too coarse there for geodesics): they were dropped, not guessed",
+                       summary["unmapped_contacts"], len(transferred.contacts.dropped))
     provenance = {"version": __version__, "commit": _commit(), "inputs": inputs.provenance(),
                   "frames": [first, last], "config": config.to_dict(), "executor": executor.describe()}
     if remap.changed:  # annotations carried onto edited meshes: how far their points moved
@@ -203,8 +209,7 @@ def _check_inputs(clip, source, target, annotations, config, annotation_max_disp
     """:func:`check_inputs`; (control points, the annotations on the rigs' meshes, RemapReport)."""
     source.validate(source=f"source rig {source.name!r}")
     target.validate(source=f"target rig {target.name!r}")
-    if clip.hand_vertices.shape[1] != source.surface.n_vertices or not np.array_equal(clip.hand_faces,
-                                                                                      source.surface.faces):
+    if not surface_matches_hand(source, clip.hand_faces, clip.hand_vertices.shape[1]):
         raise InputError(f"the clip's hand mesh ({clip.hand_vertices.shape[1]} vertices, {len(clip.hand_faces)} "
                          f"faces) is not the source rig {source.name!r}'s surface ({source.surface.n_vertices} "
                          f"vertices, {len(source.surface.faces)} faces): give the rig the clip was made with as the "

@@ -9,7 +9,9 @@ def add_commands(sub) -> None:
     annotate = sub.add_parser("annotate", help="annotations (virtual markers, axial curves)")
     annotate_sub = annotate.add_subparsers(dest="annotate_command", required=True)
     a_prop = annotate_sub.add_parser("propose", help="propose annotations from two rigs' skeletons")
-    a_prop.add_argument("--source", required=True, help="source rig: a file or demo:NAME[@RESOLUTION]")
+    a_prop.add_argument("--source", required=True,
+                        help="source rig: a file, demo:NAME[@RESOLUTION], or a clip (.npz: the rig it records, "
+                             "e.g. a GRAB import's MANO hand)")
     a_prop.add_argument("--target", required=True, help="target rig: a file or demo:NAME[@RESOLUTION]")
     a_prop.add_argument("--out", required=True, help="annotation JSON to write")
     a_prop.add_argument("--source-hand-map", default=None,
@@ -51,7 +53,7 @@ def _cmd_annotate_propose(args) -> int:
 
     source_map = load_hand_mapping(args.source_hand_map) if args.source_hand_map else None
     target_map = load_hand_mapping(args.hand_map) if args.hand_map else None
-    source = resolve_rig(args.source, mapping=source_map)
+    source = resolve_rig(_source_spec(args.source), mapping=source_map)
     target = resolve_rig(args.target, mapping=target_map, root_body=args.root_body, hand_root=args.hand_root)
     proposal = propose(source, target, source_mapping=source_map, target_mapping=target_map)
     annotations = proposal.annotations
@@ -74,6 +76,16 @@ def _cmd_annotate_propose(args) -> int:
         draw_proposal(proposal, png, source_rig=source, target_rig=target)
         print(f"wrote {png}")
     return 0
+
+
+def _source_spec(spec: str) -> str:
+    """A source rig spec, or for a clip (.npz) the rig it records."""
+    if str(spec).lower().endswith(".npz"):
+        from ..clip import load_clip
+        from ..inputs import clip_source_rig
+
+        return clip_source_rig(load_clip(spec), spec)
+    return spec
 
 
 def _cmd_annotate_remap(args) -> int:

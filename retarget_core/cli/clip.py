@@ -43,11 +43,17 @@ def add_commands(sub) -> None:
 
     grab = sub.add_parser("import-grab", help="convert a GRAB sequence into a clip")
     grab.add_argument("sequence", help="GRAB sequence .npz")
-    grab.add_argument("--mano", required=True, help="the MANO right-hand model (MANO_RIGHT.pkl)")
-    grab.add_argument("--out", required=True, help="clip .npz to write")
+    grab.add_argument("--mano", help="the MANO right-hand model (MANO_RIGHT.pkl)")
+    grab.add_argument("--mano-left", help="the MANO left-hand model (MANO_LEFT.pkl), for --hand left or both")
+    grab.add_argument("--hand", choices=("right", "left", "both"), default="right",
+                      help="which hand to import (both: two clips sharing the object, OUT's name + _right/_left)")
+    grab.add_argument("--out", required=True,
+                      help="clip .npz to write; its MANO source rig is written beside it (<name>.source_rig.usda)")
     grab.add_argument("--object-mesh", help="the object's mesh (default: found under --grab-root)")
     grab.add_argument("--table-mesh", help="the table's mesh (default: found under --grab-root)")
-    grab.add_argument("--vtemp", help="the subject's right-hand template mesh (778 vertices)")
+    grab.add_argument("--vtemp", help="the subject's hand template mesh (778 vertices; default: found under "
+                                     "--grab-root; with --hand both it is the right hand's)")
+    grab.add_argument("--vtemp-left", help="the subject's left-hand template, with --hand both")
     grab.add_argument("--grab-root", help="GRAB's root folder, to resolve the paths stored in the sequence")
     grab.set_defaults(func=_cmd_import_grab)
 
@@ -179,12 +185,25 @@ def _cmd_clip_pair(args) -> int:
 
 
 def _cmd_import_grab(args) -> int:
-    from ..clip.grab import import_grab
+    from ..clip.grab import import_grab_hand, save_grab_hand
+    from ..errors import InputError
 
-    clip = import_grab(args.sequence, args.mano, object_mesh=args.object_mesh, table_mesh=args.table_mesh,
-                       vtemp=args.vtemp, grab_root=args.grab_root)
-    clip.save(args.out)
-    counts = (clip.contact_labels > 0).sum(axis=1)
-    print(f"wrote {args.out}: {clip.n_frames} frames at {clip.fps:g} fps, object {clip.object_name or '-'}, "
-          f"{int((counts > 0).sum())} frames with right-hand contacts ({clip.source})")
+    hands = ("right", "left") if args.hand == "both" else (args.hand,)
+    models = {"right": args.mano, "left": args.mano_left}
+    for hand in hands:
+        if not models[hand]:
+            raise InputError(f"the {hand} hand needs its MANO model: pass --{'mano' if hand == 'right' else 'mano-left'} "
+                             f"MANO_{hand.upper()}.pkl", element="mano" if hand == "right" else "mano_left")
+    out = Path(args.out)
+    for hand in hands:
+        vtemp = args.vtemp_left if hand == "left" and args.hand == "both" else args.vtemp
+        imported = import_grab_hand(args.sequence, models[hand], hand=hand, object_mesh=args.object_mesh,
+                                    table_mesh=args.table_mesh, vtemp=vtemp, grab_root=args.grab_root)
+        path = out if len(hands) == 1 else out.with_name(f"{out.name.removesuffix('.npz')}_{hand}.npz")
+        clip_path, rig_path = save_grab_hand(imported, path)
+        clip = imported.clip
+        counts = (clip.contact_labels > 0).sum(axis=1)
+        print(f"wrote {clip_path}: {clip.n_frames} frames at {clip.fps:g} fps, object {clip.object_name or '-'}, "
+              f"{int((counts > 0).sum())} frames with {hand}-hand contacts ({clip.source})")
+        print(f"wrote {rig_path}: its MANO source rig ({'subject template' if imported.template is not None else 'MANO mean template'})")
     return 0

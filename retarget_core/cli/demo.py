@@ -47,7 +47,7 @@ def _cmd_demo(args) -> int:
     from ..rig.demo_hands import DEMO_HANDS, demo_hand
     from ..transfer.annotations import load_annotations
 
-    jobs = [(c.stem, load_clip(c), load_contact_pairs(c.with_name(c.stem + ".pairs.npz"))) for c in clips]
+    jobs = [(c.stem, load_clip(c), load_contact_pairs(c.with_name(c.stem + ".pairs.npz")), c) for c in clips]
     for name in DEMO_HANDS:
         print(f"-- {name}")
         _transfer_table(jobs, None, demo_hand(name, resolution=args.resolution),

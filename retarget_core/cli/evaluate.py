@@ -26,6 +26,8 @@ def add_commands(sub) -> None:
     grid.add_argument("--frames", type=int, default=120, help="frames per clip window (default 120)")
     grid.add_argument("--stride", type=int, default=4, help="intersections every N-th frame (default 4)")
     grid.add_argument("--workers", type=int, help="worker processes per retarget")
+    grid.add_argument("--set", action="append", metavar="KEY=VALUE",
+                      help="configuration override over the default preset (repeatable)")
     grid.set_defaults(func=_cmd_grid)
 
     cmp_ = sub.add_parser("compare", help="one clip onto two variants of a hand: metrics side by side, "
@@ -63,8 +65,10 @@ def _cmd_evaluate(args) -> int:
 def _cmd_grid(args) -> int:
     from ..evaluate.grid import run_grid
 
+    from .common import _parse_sets
+
     paths = run_grid(args.out, targets=args.target, clips=args.clip, methods=args.method or None,
-                     frames=args.frames, workers=args.workers, stride=args.stride)
+                     frames=args.frames, workers=args.workers, stride=args.stride, overrides=_parse_sets(args.set))
     print(Path(paths["grid.md"]).read_text(encoding="utf-8"))
     for path in paths.values():
         print(f"wrote {path}")

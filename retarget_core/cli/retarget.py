@@ -54,6 +54,10 @@ def _cmd_retarget(args) -> int:
     print(f"  at the solved frames: median contact distance {_fmt_mm(s['solved_contact_distance_median_mm'])} mm; "
           f"marker error {_fmt_mm(s['solved_marker_error_median_mm'])} mm; failed frames {s['failed_frames']}; "
           f"unresolved entries {s['unresolved_entries']}; fit failures {s['fit_failures']}")
+    if s.get("unmapped_contacts"):
+        print(f"  note: {s['unmapped_contacts']} source contacts lie where no log-map chart of the source hand is "
+              "one-to-one (a mesh too coarse there for geodesics, e.g. a fingertip of a few triangles): dropped, "
+              "not guessed; `handretarget transfer` shows them per curve")
     for line in result.provenance.get("annotation_remap", {}).get("lines", []):
         print(f"  annotations: {line}")
     for key, v in result.unused_settings.items():

@@ -51,21 +51,23 @@ def _cmd_transfer(args) -> int:
     jobs = []
     for clip_path in args.clip:
         clip = load_clip(clip_path)
-        jobs.append((Path(clip_path).stem, clip, pair_contacts(clip, frames=frames)))
+        jobs.append((Path(clip_path).stem, clip, pair_contacts(clip, frames=frames), clip_path))
     _transfer_table(jobs, resolve_rig(args.source_rig) if args.source_rig else None, target, annotations,
                     Path(args.out) if args.out else None, frames)
     return 0
 
 
 def _transfer_table(jobs, source, target, annotations, out, frames) -> None:
-    """Transfer each (name, clip, pairs) onto ``target``; print a row each; with ``out``, write
-    the report (JSON) and a picture (PNG) per clip."""
+    """Transfer each (name, clip, pairs, clip path) onto ``target`` from ``source`` (None: the rig
+    each clip records); print a row each; with ``out``, write the report (JSON) and a picture
+    (PNG) per clip."""
+    from ..inputs import clip_source_rig
     from ..rig.io import resolve_rig
     from ..transfer.clip_transfer import render_transfer, transfer_clip, transfer_report
 
     print(f"{'clip':<22} {'contacts':>9} {'transferred':>11} {'dropped':>9} {'spread':>8}  dropped by curve")
-    for name, clip, pairs in jobs:
-        src = source or resolve_rig(clip.source_rig)
+    for name, clip, pairs, clip_path in jobs:
+        src = source or resolve_rig(clip_source_rig(clip, clip_path))
         result = transfer_clip(pairs, src, target, annotations)
         report = transfer_report(result, src, target)
         _print_transfer_row(name, report)
@@ -90,6 +92,7 @@ def _cmd_transfer_demo(args) -> int:
     """Every demo clip onto every demo target with the proposed annotations: shares and spread."""
     from ..clip import load_clip
     from ..pairing import pair_contacts
+    from ..inputs import clip_source_rig
     from ..rig.demo_hands import DEMO_HANDS, demo_hand
     from ..rig.io import resolve_rig
     from ..transfer.clip_transfer import transfer_clip, transfer_report
@@ -107,8 +110,9 @@ def _cmd_transfer_demo(args) -> int:
         target = demo_hand(target_name, resolution=args.resolution)
         print(f"\n== {target_name} ({target.surface.n_vertices} vertices)")
         print(f"{'clip':<22} {'contacts':>9} {'transferred':>11} {'dropped':>9} {'spread':>8}  dropped by curve")
-        for name, clip in loaded:
-            source = sources.setdefault(clip.source_rig, resolve_rig(clip.source_rig))
+        for (name, clip), path in zip(loaded, clips):
+            spec = clip_source_rig(clip, path)
+            source = sources.get(spec) or sources.setdefault(spec, resolve_rig(spec))
             annotations = propose_annotations(source, target)
             report = transfer_report(transfer_clip(pairs[name], source, target, annotations), source, target)
             _print_transfer_row(name, report)

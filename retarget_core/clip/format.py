@@ -26,7 +26,14 @@ marker_faces         (M,)         ... on the source hand mesh: face index (int32
 marker_barycentric   (M, 3)       ... and barycentric coordinates (float64)
 dof_names            (D,)         optional ground truth of a generated clip: source rig DOFs
 dof_values           (T, D)       ... their values per frame (float64)
-source_rig           ()           optional: which rig made the clip (e.g. "demo:source_human@0.005")
+source_rig           ()           optional: which rig made the clip: a demo hand
+                                  ("demo:source_human@0.005") or a rig file's path relative to
+                                  the clip's folder (a GRAB import's MANO rig)
+source_rig_sha256    ()           optional, with a file source_rig: the sha256 of that file (the
+                                  file is used only when its bytes match)
+hand                 ()           optional: "right" (default) or "left"; contact codes use the
+                                  right-hand numbering either way (a left GRAB hand's 21, 26-40 are
+                                  stored as 22, 41-55)
 object_name          ()           e.g. "bottle"
 motion               ()           e.g. "pick_place"
 source               ()           provenance, e.g. "demo" or "grab:s1/apple_eat_1"
@@ -85,6 +92,8 @@ class Clip:
     dof_values: np.ndarray | None = None
     source_rig: str = ""
     object_name: str = ""
+    source_rig_sha256: str = ""
+    hand: str = ""
     motion: str = ""
     source: str = ""
 
@@ -173,6 +182,12 @@ class Clip:
             frame = int(np.nonzero(np.isin(labels, unknown).any(axis=1))[0][0])
             bad("contact_labels", f"frame {frame}: code {unknown[0]} is not a right-hand contact code (0, 22, 41-55)")
 
+        if self.hand not in ("", "right", "left"):
+            bad("hand", f"must be 'right' or 'left', got {self.hand!r}")
+        if self.source_rig_sha256 and not (len(self.source_rig_sha256) == 64
+                                           and all(c in "0123456789abcdef" for c in self.source_rig_sha256)):
+            bad("source_rig_sha256", "must be 64 lowercase hex digits")
+
         if (self.table_pose is None) != (self.table_half_extents is None):
             bad("table_pose", "table_pose and table_half_extents go together")
         if self.table_pose is not None:
@@ -218,6 +233,8 @@ class Clip:
             "object_poses": np.asarray(self.object_poses, dtype=np.float64),
             "contact_labels": np.asarray(self.contact_labels, dtype=np.uint8),
             "source_rig": np.array(self.source_rig),
+            "source_rig_sha256": np.array(self.source_rig_sha256),
+            "hand": np.array(self.hand),
             "object_name": np.array(self.object_name),
             "motion": np.array(self.motion),
             "source": np.array(self.source),
@@ -248,7 +265,7 @@ _FIELD_SPECS = {
     "table_pose": (None, "iuf"), "table_half_extents": (None, "iuf"),
     "marker_names": (1, "U"), "marker_faces": (None, "iu"), "marker_barycentric": (None, "iuf"),
     "dof_names": (1, "U"), "dof_values": (None, "iuf"),
-    "source_rig": (0, "U"), "object_name": (0, "U"), "motion": (0, "U"), "source": (0, "U"),
+    "source_rig": (0, "U"), "source_rig_sha256": (0, "U"), "hand": (0, "U"), "object_name": (0, "U"), "motion": (0, "U"), "source": (0, "U"),
 }
 _KIND_NAMES = {"U": "a string", "iu": "an integer", "iuf": "a number", "biu": "an integer"}
 
@@ -370,6 +387,8 @@ def load_clip(path, *, validate: bool = True, max_bytes: int = MAX_CLIP_BYTES) -
             dof_names=[str(s) for s in get("dof_names")] if has("dof_names") else [],
             dof_values=get("dof_values") if has("dof_values") else None,
             source_rig=text("source_rig"),
+            source_rig_sha256=text("source_rig_sha256"),
+            hand=text("hand"),
             object_name=text("object_name"),
             motion=text("motion"),
             source=text("source"),

@@ -42,6 +42,8 @@ __all__ = [
     "finger_pose_from_pca",
     "rodrigues",
     "import_grab",
+    "import_grab_hand",
+    "GrabHand",
     "MANO_N_JOINTS",
 ]
 
@@ -299,7 +301,7 @@ def _mano_globals():
 
 @dataclass
 class ManoModel:
-    """A MANO hand model as dense numpy arrays (right hand)."""
+    """A MANO hand model as dense numpy arrays (one hand: ``handedness``)."""
 
     v_template: np.ndarray  # (778, 3)
     shapedirs: np.ndarray  # (778, 3, S)
@@ -311,6 +313,7 @@ class ManoModel:
     hands_components: np.ndarray  # (k, 45)
     hands_mean: np.ndarray  # (45,)
     source: str = ""
+    handedness: str = "right"
 
 
 def _mano_array(raw: dict, key: str, src: str, *, required: bool = True):
@@ -341,34 +344,69 @@ def _check_shape(array: np.ndarray, expected: tuple, key: str, src: str) -> None
         raise InputError(f"MANO model: {key} contains NaN or inf", source=src, element=key)
 
 
-def load_mano_model(path) -> ManoModel:
-    """Read a MANO model pickle (official Python-2 chumpy style or plain numpy arrays).
+def _side_from_name(stem: str) -> str | None:
+    for side in ("left", "right"):
+        if re.search(rf"(^|[^a-z]){side}([^a-z]|$)", stem, re.IGNORECASE):
+            return side
+    return None
 
-    Only the right hand is supported: a file named like ``MANO_LEFT`` or whose data flags a left
-    hand (``is_rhand`` false, ``hand``/``side`` = left) is refused."""
-    path = Path(path)
-    src = str(path)
-    if not path.is_file():
-        raise InputError("no such file", source=src)
-    if re.search(r"(^|[^a-z])left([^a-z]|$)", path.stem, re.IGNORECASE):
-        raise InputError("this looks like a left-hand MANO model; only the right hand (MANO_RIGHT) is supported", source=src)
-    raw = _restricted_loads(path.read_bytes(), _mano_globals(), source=src, element="MANO model", encoding="latin1")
-    if not isinstance(raw, dict):
-        raise InputError(f"MANO model: expected a dict, got {type(raw).__name__}", source=src)
-    raw = {(k.decode("latin1") if isinstance(k, bytes) else str(k)): v for k, v in raw.items()}
 
+def _side_from_data(raw: dict, src: str) -> str | None:
+    """The side a MANO pickle states (``is_rhand`` / ``is_right`` flags, ``hand``/``side`` text)."""
     for flag in ("is_rhand", "is_right"):
         if flag in raw:
             value = raw[flag]
             if isinstance(value, (np.ndarray, np.generic)):
                 value = np.asarray(value).reshape(-1)[0] if np.size(value) else True
-            if not bool(value):
-                raise InputError("MANO model is a left hand; only the right hand is supported", source=src, element=flag)
+            return "right" if bool(value) else "left"
     for flag in ("hand", "side", "hand_type"):
         if flag in raw and isinstance(raw[flag], (str, bytes)):
-            text = raw[flag].decode("latin1") if isinstance(raw[flag], bytes) else raw[flag]
-            if text.strip().lower() in ("left", "l", "lhand", "left_hand"):
-                raise InputError("MANO model is a left hand; only the right hand is supported", source=src, element=flag)
+            text = (raw[flag].decode("latin1") if isinstance(raw[flag], bytes) else raw[flag]).strip().lower()
+            if text in ("left", "l", "lhand", "left_hand"):
+                return "left"
+            if text in ("right", "r", "rhand", "right_hand"):
+                return "right"
+    return None
+
+
+def _outward(vertices: np.ndarray, faces: np.ndarray, src: str) -> np.ndarray:
+    """``faces`` wound so the surface (its openings closed by fans) encloses a positive volume:
+    MANO_LEFT files carry the right hand's winding on mirrored vertices."""
+    from ..rig.hand_cut import cap_openings
+
+    try:
+        v, f, _ = cap_openings(vertices, faces, np.zeros((len(vertices), 1)), what=f"{src} (MANO mesh)")
+    except InputError:  # not a hand surface with simple openings: left as written (no rig can be built)
+        return faces
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    volume = float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum()) / 6.0
+    return faces if volume >= 0 else faces[:, [0, 2, 1]].copy()
+
+
+def load_mano_model(path, hand: str = "right") -> ManoModel:
+    """Read a MANO model pickle (official Python-2 chumpy style or plain numpy arrays) of the
+    ``hand`` ("right": MANO_RIGHT.pkl, "left": MANO_LEFT.pkl). A file whose name or data says
+    it is the other hand is refused, naming what to pass instead. Triangles are returned wound
+    outward (a left model's are flipped when its file keeps the right's winding)."""
+    if hand not in ("right", "left"):
+        raise InputError(f"hand must be 'right' or 'left', got {hand!r}", element="hand")
+    path = Path(path)
+    src = str(path)
+    if not path.is_file():
+        raise InputError("no such file", source=src)
+    other = "left" if hand == "right" else "right"
+    remedy = ("pass it as the left hand's model (--mano-left)" if other == "left"
+              else "pass it as the right hand's model (--mano)")
+    if _side_from_name(path.stem) == other:
+        raise InputError(f"this looks like a {other}-hand MANO model (MANO_{other.upper()}), but the {hand} hand's "
+                         f"model is asked for: {remedy}", source=src)
+    raw = _restricted_loads(path.read_bytes(), _mano_globals(), source=src, element="MANO model", encoding="latin1")
+    if not isinstance(raw, dict):
+        raise InputError(f"MANO model: expected a dict, got {type(raw).__name__}", source=src)
+    raw = {(k.decode("latin1") if isinstance(k, bytes) else str(k)): v for k, v in raw.items()}
+    if _side_from_data(raw, src) == other:
+        raise InputError(f"MANO model is a {other} hand, but the {hand} hand's model is asked for: {remedy}",
+                         source=src, element="is_rhand")
 
     v_template = _mano_array(raw, "v_template", src).astype(np.float64)
     _check_shape(v_template, (None, 3), "v_template", src)
@@ -421,8 +459,8 @@ def load_mano_model(path) -> ManoModel:
     _check_shape(mean, (45,), "hands_mean", src)
 
     return ManoModel(v_template=v_template, shapedirs=shapedirs, posedirs=posedirs, J_regressor=j_reg,
-                     weights=weights, parents=parents, faces=faces, hands_components=comps, hands_mean=mean,
-                     source=src)
+                     weights=weights, parents=parents, faces=_outward(v_template, faces, src), hands_components=comps,
+                     hands_mean=mean, source=src, handedness=hand)
 
 
 # =============================================================================================
@@ -611,17 +649,49 @@ def _grab_pose(orient: np.ndarray, transl: np.ndarray) -> np.ndarray:
     return poses
 
 
-def import_grab(sequence_path, mano_path, *, object_mesh=None, table_mesh=None, vtemp=None, grab_root=None) -> Clip:
-    """Import one GRAB sequence's right hand and object into a validated :class:`Clip`.
+#: GRAB's contact codes are SMPL-X joint indices plus one: 22 = right wrist (the palm), 41-55 = the
+#: right hand's 15 finger joints in MANO's order; 21 and 26-40 are the left hand's.
+LEFT_HAND_CODE_SHIFT = {21: 22, **{c: c + 15 for c in range(26, 41)}}
+HAND_KEYS = {"right": "rhand", "left": "lhand"}
 
-    ``mano_path``: the MANO right-hand model pickle (MANO_RIGHT.pkl). Meshes (object, table,
-    subject hand template ``vtemp``) come from the explicit arguments or from the relative paths
-    stored in the sequence, resolved under ``grab_root`` (the GRAB dataset folder)."""
+
+@dataclass
+class GrabHand:
+    """One hand of an imported GRAB sequence: the clip, the MANO model it was posed with and the
+    subject's hand template (None: the model's mean template). :meth:`rig` is its source rig."""
+
+    clip: Clip
+    model: ManoModel
+    template: np.ndarray | None
+
+    def rig(self, name: str | None = None):
+        """The MANO source rig of this hand (:func:`retarget_core.rig.mano.mano_rig`)."""
+        from ..rig.mano import mano_rig
+
+        return mano_rig(self.model, self.template, name=name)
+
+
+def import_grab(sequence_path, mano_path, *, object_mesh=None, table_mesh=None, vtemp=None, grab_root=None) -> Clip:
+    """The right hand of :func:`import_grab_hand` as a clip."""
+    return import_grab_hand(sequence_path, mano_path, object_mesh=object_mesh, table_mesh=table_mesh, vtemp=vtemp,
+                            grab_root=grab_root).clip
+
+
+def import_grab_hand(sequence_path, mano_path, *, hand: str = "right", object_mesh=None, table_mesh=None, vtemp=None,
+                     grab_root=None) -> GrabHand:
+    """Import one GRAB sequence's ``hand`` ("right" or "left") and object into a validated
+    :class:`Clip`, with what its source rig is built from.
+
+    ``mano_path``: that hand's MANO model pickle (MANO_RIGHT.pkl / MANO_LEFT.pkl). Meshes (object,
+    table, subject hand template ``vtemp``) come from the explicit arguments or from the relative
+    paths stored in the sequence, resolved under ``grab_root`` (the GRAB dataset folder). A left
+    hand's contact codes are stored in the clip's right-hand numbering (``hand`` = "left")."""
     seq_path = Path(sequence_path)
     src = str(seq_path)
     seq = load_grab_sequence(seq_path)
-    model = load_mano_model(mano_path)
-
+    model = load_mano_model(mano_path, hand)
+    hand_key = HAND_KEYS[hand]
+    other_key = HAND_KEYS["left" if hand == "right" else "right"]
     fps_value = _get(seq, "framerate", src)
     try:
         fps = float(np.asarray(fps_value, dtype=np.float64).reshape(-1)[0])
@@ -630,30 +700,31 @@ def import_grab(sequence_path, mano_path, *, object_mesh=None, table_mesh=None, 
     if not np.isfinite(fps) or fps <= 0:
         raise InputError(f"must be a positive number, got {fps}", source=src, element="framerate")
 
-    if not isinstance(seq.get("rhand"), dict):
-        if "lhand" in seq:
-            raise InputError("the sequence holds no right-hand data (only 'lhand'); only the right hand is supported",
-                             source=src, element="rhand")
-        raise InputError("required key is missing from the GRAB sequence", source=src, element="rhand")
+    if not isinstance(seq.get(hand_key), dict):
+        if isinstance(seq.get(other_key), dict):
+            raise InputError(f"the sequence holds no {hand}-hand data (only {other_key!r}): import the other hand "
+                             f"(--hand {'left' if hand == 'right' else 'right'})", source=src, element=hand_key)
+        raise InputError(f"required key is missing from the GRAB sequence (GRAB keeps each hand's MANO "
+                         f"parameters under '{hand_key}.params')", source=src, element=hand_key)
 
     # ---- per-frame arrays ------------------------------------------------------------------
     arrays: dict[str, np.ndarray] = {}
-    arrays["rhand.params.global_orient"] = _frames_array(seq, "rhand.params.global_orient", src, 3)
-    arrays["rhand.params.transl"] = _frames_array(seq, "rhand.params.transl", src, 3)
-    hand_pose = _frames_array(seq, "rhand.params.hand_pose", src, None, required=False)
+    arrays[f"{hand_key}.params.global_orient"] = _frames_array(seq, f"{hand_key}.params.global_orient", src, 3)
+    arrays[f"{hand_key}.params.transl"] = _frames_array(seq, f"{hand_key}.params.transl", src, 3)
+    hand_pose = _frames_array(seq, f"{hand_key}.params.hand_pose", src, None, required=False)
     fullpose = None
     if hand_pose is not None:
-        arrays["rhand.params.hand_pose"] = hand_pose
+        arrays[f"{hand_key}.params.hand_pose"] = hand_pose
         k = hand_pose.shape[1]
         if k > len(model.hands_components):
             raise InputError(f"has {k} PCA coefficients but the MANO model has {len(model.hands_components)} components",
-                             source=src, element="rhand.params.hand_pose")
+                             source=src, element=f"{hand_key}.params.hand_pose")
     else:
-        fullpose = _frames_array(seq, "rhand.params.fullpose", src, 45, required=False)
+        fullpose = _frames_array(seq, f"{hand_key}.params.fullpose", src, 45, required=False)
         if fullpose is None:
             raise InputError("required key is missing from the GRAB sequence (neither hand_pose nor fullpose)",
-                             source=src, element="rhand.params.hand_pose")
-        arrays["rhand.params.fullpose"] = fullpose
+                             source=src, element=f"{hand_key}.params.hand_pose")
+        arrays[f"{hand_key}.params.fullpose"] = fullpose
     arrays["object.params.global_orient"] = _frames_array(seq, "object.params.global_orient", src, 3)
     arrays["object.params.transl"] = _frames_array(seq, "object.params.transl", src, 3)
     contact_raw = _get(seq, "contact.object", src)
@@ -680,7 +751,7 @@ def import_grab(sequence_path, mano_path, *, object_mesh=None, table_mesh=None, 
         except (TypeError, ValueError, IndexError):
             raise InputError(f"not an integer: {n_frames_value!r}", source=src, element="n_frames") from None
     else:
-        ref_key, ref_n = "rhand.params.transl", len(arrays["rhand.params.transl"])
+        ref_key, ref_n = f"{hand_key}.params.transl", len(arrays[f"{hand_key}.params.transl"])
     for key, array in [*arrays.items(), ("contact.object", contact)]:
         if len(array) != ref_n:
             raise InputError(f"has {len(array)} frames but {ref_key} says {ref_n}", source=src, element=key)
@@ -694,7 +765,9 @@ def import_grab(sequence_path, mano_path, *, object_mesh=None, table_mesh=None, 
     sbj = _text(seq.get("sbj_id"))
     if sbj and re.fullmatch(r"[\w-]+", sbj):
         source = f"grab:{sbj}/{seq_path.stem}"
-    vtemp_path = _resolve(vtemp, _get(seq, "rhand.vtemp", src, required=False), grab_root, "hand template (vtemp)", src, "vtemp")
+    if hand == "left":
+        source += " (left hand)"
+    vtemp_path = _resolve(vtemp, _get(seq, f"{hand_key}.vtemp", src, required=False), grab_root, "hand template (vtemp)", src, "vtemp")
     template = None
     if vtemp_path is not None:
         template, _ = _load_mesh(vtemp_path, "hand template (vtemp)", "vtemp")
@@ -708,7 +781,7 @@ def import_grab(sequence_path, mano_path, *, object_mesh=None, table_mesh=None, 
         finger = finger_pose_from_pca(model, hand_pose, flat_hand_mean=True)
     else:
         finger = fullpose
-    hand_vertices = mano_forward(model, arrays["rhand.params.global_orient"], finger, arrays["rhand.params.transl"],
+    hand_vertices = mano_forward(model, arrays[f"{hand_key}.params.global_orient"], finger, arrays[f"{hand_key}.params.transl"],
                                  v_template=template)
 
     # ---- object ----------------------------------------------------------------------------
@@ -718,6 +791,11 @@ def import_grab(sequence_path, mano_path, *, object_mesh=None, table_mesh=None, 
                          source=src, element="contact.object")
     object_poses = _grab_pose(arrays["object.params.global_orient"], arrays["object.params.transl"])
     codes = np.rint(contact).astype(np.int64) if np.issubdtype(contact.dtype, np.floating) else contact.astype(np.int64)
+    if hand == "left":
+        shifted = np.zeros_like(codes)
+        for code, right in LEFT_HAND_CODE_SHIFT.items():
+            shifted[codes == code] = right
+        codes = shifted
     keep = np.isin(codes, sorted(RIGHT_HAND_CONTACT_CODES))
     contact_labels = np.where(keep, codes, 0).astype(np.uint8)
 
@@ -752,6 +830,25 @@ def import_grab(sequence_path, mano_path, *, object_mesh=None, table_mesh=None, 
         object_name=_text(seq.get("obj_name")),
         motion=_text(seq.get("motion_intent")),
         source=source,
+        hand=hand,
     )
     clip.validate(source=src)
-    return clip
+    return GrabHand(clip, model, template)
+
+
+def save_grab_hand(hand: GrabHand, clip_path) -> tuple[Path, Path]:
+    """Write ``hand``'s clip to ``clip_path`` and its MANO source rig beside it
+    (``<clip stem>.source_rig.usda``), the clip recording the rig's file name and sha256 so that
+    ``retarget``, ``transfer`` and ``annotate propose --source CLIP`` find it. Returns both paths."""
+    from dataclasses import replace as _replace
+
+    from ..inputs import file_sha256
+    from ..rig.io import save_rig
+
+    clip_path = Path(clip_path)
+    rig_path = clip_path.with_name(clip_path.name.removesuffix(".npz") + ".source_rig.usda")
+    save_rig(hand.rig(), rig_path)
+    clip = _replace(hand.clip, source_rig=rig_path.name, source_rig_sha256=file_sha256(rig_path))
+    clip.save(clip_path)
+    return clip_path, rig_path
+

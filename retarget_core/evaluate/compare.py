@@ -141,7 +141,7 @@ def run_compare(clip_path, rigs, out, *, annotations=None, workers=None, stride:
     clip = load_clip(clip_path)
     if frames:
         clip = grasp_window(clip, frames)
-    source, source_entry = resolve_rig_source(clip_source_rig(clip))
+    source, source_entry = resolve_rig_source(clip_source_rig(clip, clip_path))
     pairs = pair_contacts(clip)
     config = load_config(None, "default", overrides)
     executor = Executor(workers=default_workers() if workers is None else workers)

@@ -36,8 +36,9 @@ HUMAN_LIKE = ("source_human", "human_alt", "witch")
 
 
 def run_grid(out, *, targets=None, clips=None, methods=METHODS, frames: int = 120, workers: int | None = None,
-             stride: int = 4, log=print) -> dict:
-    """Run (or resume) the grid into ``out``; returns {name: path} of the table and report."""
+             stride: int = 4, overrides: dict | None = None, log=print) -> dict:
+    """Run (or resume) the grid into ``out``; returns {name: path} of the table and report.
+    ``overrides``: configuration keys over the default preset (as ``--set``)."""
     from ..clip import load_clip
     from ..clip.demo import DEMO_CLIPS, grasp_window, make_demo_clip, source_rig
     from ..execute import Executor, default_workers
@@ -96,7 +97,7 @@ def run_grid(out, *, targets=None, clips=None, methods=METHODS, frames: int = 12
                     inputs = RunInputs.of(clip, source, target, annotations, names={"clip": f"demo:{clip_name}[{frames}]",
                                                  "source_rig": "demo:source_human",
                                                  "target_rig": f"demo:{hand}" if hand in DEMO_HANDS else hand})
-                    result = retarget(inputs, load_config(None, "default", {"method": method}),
+                    result = retarget(inputs, load_config(None, "default", {**(overrides or {}), "method": method}),
                                       Executor(workers=default_workers() if workers is None else workers), pairs=clip_pairs)
                     result.write(cell)
                     write_evaluation(cell, stride=stride)

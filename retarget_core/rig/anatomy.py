@@ -188,17 +188,28 @@ def marker_sites(rig: Rig, model: HandModel) -> dict[str, tuple[np.ndarray, np.n
     return sites
 
 
+#: rig metadata key of fixed marker vertices, {marker name: surface vertex id} (a MANO rig's 25)
+MARKERS_METADATA = "markers"
+
+
 def place_markers(rig: Rig, model: HandModel, sites: dict, names: list[str]) -> SurfacePoints:
-    """The named marker sites of :func:`marker_sites` put on the surface."""
+    """The named marker sites of :func:`marker_sites` put on the surface; a marker the rig fixes
+    to a vertex (``metadata["markers"]``, a MANO rig's paper markers) is that vertex."""
     faces = np.zeros(len(names), dtype=np.int64)
     bary = np.zeros((len(names), 3))
+    fixed = rig.metadata.get(MARKERS_METADATA) or {}
+    pinned = [i for i, n in enumerate(names) if n in fixed]
+    if pinned:
+        sp = SurfacePoints.from_vertices(np.array([int(fixed[names[i]]) for i in pinned]), rig.surface.faces)
+        faces[pinned], bary[pinned] = sp.faces, sp.barycentric
+    names = [None if n in fixed else n for n in names]
     for palm_only in (False, True):
-        idx = [i for i, n in enumerate(names) if sites[n][2] == palm_only and sites[n][1] is not None]
+        idx = [i for i, n in enumerate(names) if n is not None and sites[n][2] == palm_only and sites[n][1] is not None]
         if idx:
             sp = surface_along(rig, model, np.array([sites[names[i]][0] for i in idx]),
                                np.array([sites[names[i]][1] for i in idx]), palm_only=palm_only)
             faces[idx], bary[idx] = sp.faces, sp.barycentric
-        idx = [i for i, n in enumerate(names) if sites[n][2] == palm_only and sites[n][1] is None]
+        idx = [i for i, n in enumerate(names) if n is not None and sites[n][2] == palm_only and sites[n][1] is None]
         if idx:
             sp = closest_hand_points(rig, model, np.array([sites[names[i]][0] for i in idx]), palm_only=palm_only)
             faces[idx], bary[idx] = sp.faces, sp.barycentric

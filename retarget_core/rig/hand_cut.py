@@ -127,7 +127,8 @@ def _cut_mesh(mesh: SkinnedMesh, new_index: np.ndarray, root: int, n_joints: int
     weights = np.zeros((len(vertices), len(kept_joints)))
     weights[:, :] = dense[used][:, kept_joints]
     weights[:, root] += 1.0 - weights.sum(axis=1)  # what the removed joints carried
-    vertices, faces, weights = _cap_openings(vertices, faces, weights)
+    vertices, faces, weights = cap_openings(vertices, faces, weights, what=what,
+                                            remedy="pick another joint with --hand-root")
     k = min(4, weights.shape[1])
     order = np.argsort(-weights, axis=1)[:, :k]
     top = np.take_along_axis(weights, order, axis=1)
@@ -135,18 +136,22 @@ def _cut_mesh(mesh: SkinnedMesh, new_index: np.ndarray, root: int, n_joints: int
     return SkinnedMesh(vertices=vertices, faces=faces, joint_indices=order, joint_weights=top), used
 
 
-def _cap_openings(vertices, faces, weights):
-    """Close every boundary loop with a fan around its centroid (oriented like the mesh)."""
+def cap_openings(vertices, faces, weights, *, what: str = "the surface", remedy: str = ""):
+    """Close every boundary loop of the mesh (vertices (V, 3), faces (F, 3), per-vertex rows
+    ``weights`` (V, J)) with a fan around its centroid, oriented like the mesh: one vertex per
+    loop (its weights the loop's mean) and its triangles appended after the mesh's own.
+    Returns (vertices, faces, weights)."""
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     key = {tuple(e) for e in edges.tolist()}
     boundary = [(a, b) for a, b in edges.tolist() if (b, a) not in key]
     if not boundary:
         return vertices, faces, weights
+    hint = f"; {remedy}" if remedy else ""
     following = {}
     for a, b in boundary:
         if a in following:
-            raise InputError("the cut leaves an opening that is not a simple loop (a non-manifold boundary); "
-                             "pick another joint with --hand-root", element="hand_root")
+            raise InputError(f"an opening of the mesh is not a simple loop (a non-manifold boundary at vertex {a})"
+                             f"{hint}", source=what, element="surface")
         following[a] = b
     new_v, new_f, new_w = [vertices], [faces], [weights]
     n = len(vertices)
@@ -159,8 +164,7 @@ def _cap_openings(vertices, faces, weights):
         while following[loop[-1]] != start:
             nxt = following[loop[-1]]
             if nxt in seen:
-                raise InputError("the cut leaves tangled openings; pick another joint with --hand-root",
-                                 element="hand_root")
+                raise InputError(f"the mesh's openings are tangled{hint}", source=what, element="surface")
             loop.append(nxt)
             seen.add(nxt)
         loop = np.array(loop)
@@ -200,6 +204,33 @@ def cap_faces(rig: Rig) -> np.ndarray:
     if not source:
         return np.zeros(0, dtype=np.int64)
     return np.nonzero(np.asarray(source["faces"]) < 0)[0]
+
+
+def uncapped_faces(rig: Rig) -> int:
+    """How many leading triangles of ``rig``'s surface are the file's own: all of them, unless
+    caps were appended after them (a MANO hand's closed wrist, :mod:`retarget_core.rig.mano`)."""
+    caps = cap_faces(rig)
+    n = len(rig.surface.faces)
+    if len(caps) and np.array_equal(caps, np.arange(n - len(caps), n)):
+        return n - len(caps)
+    return n
+
+
+def surface_matches_hand(rig: Rig, hand_faces: np.ndarray, n_hand_vertices: int | None = None) -> bool:
+    """Whether a clip's hand mesh (its triangles (F, 3), and its vertex count) is ``rig``'s
+    surface: the same mesh, or the same before the cap triangles and cap centres appended to
+    close it."""
+    hand_faces = np.asarray(hand_faces)
+    n = len(hand_faces)
+    faces = rig.surface.faces
+    if n == len(faces):
+        same_vertices = n_hand_vertices in (None, rig.surface.n_vertices)
+    else:
+        n_caps = len(faces) - n
+        centres = sum(1 for v in (rig.metadata.get(SURFACE_SOURCE) or {}).get("vertices", []) if v < 0)
+        same_vertices = n_hand_vertices in (None, rig.surface.n_vertices - centres) and n_caps > 0 \
+            and n == uncapped_faces(rig)
+    return same_vertices and np.array_equal(faces[:n], hand_faces)
 
 
 def surface_source(before: Rig, surface: SkinnedMesh, used: np.ndarray) -> dict:

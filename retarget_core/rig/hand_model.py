@@ -58,6 +58,10 @@ THUMB_MARGIN_DEG = 10.0
 #: A palmar decision needs a combined vote at least this strong (votes are in [-1, 1]).
 PALMAR_MIN_VOTE = 0.15
 
+#: rig metadata key of the rig's own :class:`HandMapping` (a MANO rig knows its fingers), used when
+#: no mapping is given
+HAND_MAPPING_METADATA = "hand_mapping"
+
 MAPPING_HELP = (
     "settle it with a hand mapping file (JSON: {\"palm\": JOINT, \"handedness\": \"right\"|\"left\", "
     "\"fingers\": {\"thumb\": [JOINTS knuckle first], \"index\": [...], ...}}), passed as --hand-map "
@@ -385,6 +389,8 @@ def _chain_geometry(joints: list[int], positions, weights, vertices, scale, mesh
 def hand_model(rig: Rig, mapping: HandMapping | None = None) -> HandModel:
     """The hand model of ``rig`` (see the module docstring); ``mapping`` settles what detection
     cannot. Raises InputError when the rig is not a hand the model can read."""
+    if mapping is None and rig.metadata.get(HAND_MAPPING_METADATA):
+        mapping = HandMapping.from_dict(rig.metadata[HAND_MAPPING_METADATA], source=f"{rig.name} (its own hand mapping)")
     mapping = mapping or HandMapping()
     notes: list[str] = []
     n = rig.n_joints

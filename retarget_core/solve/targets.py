@@ -17,6 +17,7 @@ from ..errors import InputError
 from ..mesh.geometry import vertex_normals
 from ..mesh.surface_points import SurfacePoints
 from ..pairing.dense import ContactPairs
+from ..rig.hand_cut import surface_matches_hand
 from ..rig.model import Rig
 from ..transfer.annotations import Annotations, resolve_points
 from ..transfer.atlas import TransferredContacts
@@ -71,8 +72,9 @@ class ContactTargets:
 
 def marker_targets(clip: Clip, source: Rig, target: Rig, annotations: Annotations) -> MarkerTargets:
     """Marker pairs of every frame. The annotations' source side lives on the clip's hand mesh."""
-    if len(clip.hand_faces) != len(source.surface.faces) or not np.array_equal(clip.hand_faces, source.surface.faces):
-        raise InputError("the clip's hand mesh is not the source rig's surface", element="source rig")
+    if not surface_matches_hand(source, clip.hand_faces):
+        raise InputError(f"the clip's hand mesh ({len(clip.hand_faces)} triangles) is not the source rig "
+                         f"{source.name!r}'s surface ({len(source.surface.faces)} triangles)", element="source rig")
     t_faces, t_bary, s_faces, s_bary = [], [], [], []
     pair_t, pair_s, weight, names = [], [], [], []
     for marker in annotations.markers:

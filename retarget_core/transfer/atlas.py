@@ -43,6 +43,9 @@ from .geodesics import LogChart, SurfaceGeometry
 
 #: Target charts are laid out within this geodesic radius of their landmark (metres).
 CHART_RADIUS = 0.06
+#: A point carried by its geodesic (no chart lays it out one-to-one) must be found again on the
+#: source within this (m): the geodesic's own round trip.
+TRACE_TOLERANCE = 0.001
 
 #: Version of the on-disk atlas (part of the cache key and stored in the file): bump it whenever
 #: the arrays of :meth:`Atlas.to_arrays` or the way an atlas is built change.
@@ -56,7 +59,11 @@ class TransferredContacts:
     """Transfer of N source surface points. face (N,), barycentric (N, 3) on the target
     (meaningless where dropped); landmark (N,) index of the chart used; curve (N,) index of its
     axial curve; dropped (N,) True for contacts of discarded charts; radius (N,) metres and
-    angle (N,) radians in the source chart."""
+    angle (N,) radians in the source chart; traced (N,) True where no chart lays the source
+    point out one-to-one (a sliver or folded triangle), so the point was carried by tracing its
+    geodesic from the target landmark (the exponential map) instead of the chart layout;
+    unmapped (N,) True for points neither a chart nor their geodesic finds again on the source
+    (they are dropped too)."""
 
     face: np.ndarray
     barycentric: np.ndarray
@@ -65,6 +72,8 @@ class TransferredContacts:
     dropped: np.ndarray
     radius: np.ndarray
     angle: np.ndarray
+    traced: np.ndarray | None = None
+    unmapped: np.ndarray | None = None
 
     def target_points(self) -> SurfacePoints:
         keep = ~self.dropped
@@ -253,33 +262,37 @@ class Atlas:
         atlas.target_charts = _unpack_charts(arrays, "target", kept[atlas.landmark_curve], len(target.faces), get)
         return atlas
 
-    def _trace_from_landmark(self, m: int, radius: np.ndarray, angle: np.ndarray):
-        """Exponential map at target landmark m: trace (radius, angle) geodesics, angle measured
-        counter-clockwise about the outward normal from the curve's direction."""
-        curve = self.target_curves[self.landmark_curve[m]]
+    def _trace_from_landmark(self, m: int, radius: np.ndarray, angle: np.ndarray, side: str = "target"):
+        """Exponential map at landmark m of ``side``'s curve: trace (radius, angle) geodesics,
+        angle measured counter-clockwise about the outward normal from the curve's direction."""
+        geometry = self.target if side == "target" else self.source
+        curves = self.target_curves if side == "target" else self.source_curves
+        curve = curves[self.landmark_curve[m]]
         k = self.landmark_index[m]
         f0, b0 = int(curve.faces[k]), curve.barycentric[k]
-        normal = self.target.face_normals[f0]
+        normal = geometry.face_normals[f0]
         zero = curve.directions[k] - (curve.directions[k] @ normal) * normal
         zero /= np.linalg.norm(zero)
-        side = np.cross(normal, zero)
+        turn = np.cross(normal, zero)
         faces = np.zeros(len(radius), dtype=np.int64)
         barys = np.zeros((len(radius), 3))
         for i, (r, a) in enumerate(zip(radius, angle)):
             if r < 1e-9:
                 faces[i], barys[i] = f0, b0
                 continue
-            end = self.target.trace(f0, b0, np.cos(a) * zero + np.sin(a) * side, float(r))
+            end = geometry.trace(f0, b0, np.cos(a) * zero + np.sin(a) * turn, float(r))
             faces[i], barys[i] = end.face, end.barycentric
         return faces, barys
 
-    def source_chart_coordinates(self, points: SurfacePoints):
-        """Nearest landmark (N,) and chart coordinates (N, 2) of source surface points.
+    def source_chart_coordinates(self, points: SurfacePoints, *, with_faithful: bool = False):
+        """Nearest landmark (N,) and chart coordinates (N, 2) of source surface points (and with
+        ``with_faithful``, (N,) whether that chart gives the point back).
 
         A point belongs to the nearest of its face corners' landmarks whose chart lays it out
         one-to-one: locating its coordinates in that chart must give the point back (near a
         fingertip's cut locus a chart can fold over itself, and a folded chart could not tell
-        the point from another)."""
+        the point from another). A point no chart gives back keeps its nearest landmark's
+        log-map coordinates (its chart's layout is then not used for it, see :meth:`transfer`)."""
         points.validate(self.source.faces)
         n = len(points)
         corners = self.source.faces[points.faces]  # (N, 3)
@@ -311,9 +324,9 @@ class Atlas:
             cxy = np.einsum("k,mkd->md", bary[i], self.source_coords[usable][:, corners[i]].astype(np.float64))
             for j in np.argsort(np.linalg.norm(cxy, axis=1))[:4]:
                 if self._round_trips(usable[j:j + 1], cxy[j:j + 1], positions[i:i + 1])[0]:
-                    landmark[i], chart_xy[i] = usable[j], cxy[j]
+                    landmark[i], chart_xy[i], accepted[i] = usable[j], cxy[j], True
                     break
-        return landmark, chart_xy
+        return (landmark, chart_xy, accepted) if with_faithful else (landmark, chart_xy)
 
     def _round_trips(self, landmark: np.ndarray, xy: np.ndarray, positions: np.ndarray) -> np.ndarray:
         """(N,) whether locating xy in the source chart of each landmark gives ``positions``."""
@@ -326,9 +339,13 @@ class Atlas:
         return ok
 
     def transfer(self, points: SurfacePoints) -> TransferredContacts:
-        """Carry source surface points (N) onto the target."""
-        landmark, xy = self.source_chart_coordinates(points)
+        """Carry source surface points (N) onto the target: through the target chart's layout
+        (``reconstruction`` "chart"), or by tracing the geodesic (r, theta) from the target
+        landmark ("trace", and for the points no source chart lays out one-to-one)."""
+        landmark, xy, faithful = self.source_chart_coordinates(points, with_faithful=True)
         n = len(points)
+        positions = points.positions(self.source.vertices, self.source.faces)
+        unmapped = np.zeros(n, dtype=bool)
         radius = np.linalg.norm(xy, axis=1)
         angle = np.arctan2(xy[:, 1], xy[:, 0])
         curve = self.landmark_curve[landmark]
@@ -343,12 +360,26 @@ class Atlas:
                 continue
             lambda_s = self.annotations.curves[self.landmark_curve[m]].target.lambda_s
             scale = lambda_s(angle[rows])
+            traced = rows if self.reconstruction == "trace" else rows[~faithful[rows]]
             if self.reconstruction == "chart":
                 f, b, _ = self.target_charts[m].locate(xy[rows] * scale[:, None])
                 face[rows], bary[rows] = f, b
-            else:
-                face[rows], bary[rows] = self._trace_from_landmark(m, radius[rows] * scale, angle[rows])
-        return TransferredContacts(face, bary, landmark, curve, dropped, radius, angle)
+            if len(traced) and self.reconstruction == "chart":
+                # no chart lays these points out one-to-one: their geodesic from the landmark
+                # carries them only where it finds them again on the source itself; where even
+                # that fails (a fingertip too coarse for any log map) they are dropped, never
+                # placed somewhere else on the hand
+                sf, sb = self._trace_from_landmark(m, radius[traced], angle[traced], side="source")
+                back = np.einsum("nk,nkd->nd", sb, self.source.vertices[self.source.faces[sf]])
+                lost = np.linalg.norm(back - positions[traced], axis=1) > TRACE_TOLERANCE
+                unmapped[traced[lost]] = True
+                traced = traced[~lost]
+            if len(traced):
+                t_scale = lambda_s(angle[traced])
+                face[traced], bary[traced] = self._trace_from_landmark(m, radius[traced] * t_scale, angle[traced])
+        return TransferredContacts(face, bary, landmark, curve, dropped | unmapped, radius, angle,
+                                   traced=~faithful if self.reconstruction == "chart" else np.ones(n, dtype=bool),
+                                   unmapped=unmapped)
 
 
 #: Per-landmark curve fields stored by :meth:`Atlas.to_arrays`: trailing shape and dtype.

@@ -10,7 +10,7 @@ import numpy as np
 from ..errors import InputError
 from ..mesh.surface_points import SurfacePoints
 from ..pairing.dense import ContactPairs
-from ..rig.hand_cut import cap_faces
+from ..rig.hand_cut import cap_faces, uncapped_faces
 from ..rig.model import Rig
 from .annotations import Annotations
 from .atlas import Atlas, TransferredContacts, get_atlas
@@ -42,7 +42,7 @@ def transfer_clip(pairs: ContactPairs, source: Rig, target: Rig, annotations: An
     """Carry every paired contact of every frame (the hand ends of ``pairs``, on ``source``'s
     surface) onto ``target`` in one vectorised pass (``workers``, ``cache_dir``: see
     :func:`atlas_for`)."""
-    if pairs.n_hand_faces != len(source.surface.faces):
+    if pairs.n_hand_faces not in (len(source.surface.faces), uncapped_faces(source)):
         raise InputError(
             f"the contact pairs were made on a hand with {pairs.n_hand_faces} faces; the source rig "
             f"{source.name!r} has {len(source.surface.faces)}", element="source rig")
@@ -68,16 +68,20 @@ def _spread(points: np.ndarray) -> float:
 
 
 def transfer_report(result: ClipTransfer, source: Rig, target: Rig) -> dict:
-    """Shares transferred and dropped (in total and per curve) and how the contacts' spread
+    """Shares transferred and dropped (in total and per curve; ``unmapped``: dropped because no
+    chart of the source lays the point out one-to-one, see
+    :class:`~retarget_core.transfer.atlas.TransferredContacts`) and how the contacts' spread
     changes: per frame, the RMS distance of the contacts from their centroid on the target's rest
     surface over the same on the source's (median over frames with contacts)."""
     c = result.contacts
     names = result.atlas.curve_names
     total = len(c.dropped)
+    unmapped = c.unmapped if c.unmapped is not None else np.zeros(total, dtype=bool)
     per_curve = {}
     for i, name in enumerate(names):
         mine = c.curve == i
         per_curve[name] = {"contacts": int(mine.sum()), "dropped": int((mine & c.dropped).sum()),
+                           "unmapped": int((mine & unmapped).sum()),
                            "discarded_chart": result.atlas.target_curves[i] is None}
     src_pos = SurfacePoints(result.pairs.hand_face, result.pairs.hand_barycentric).positions(
         source.surface.vertices, source.surface.faces)
@@ -98,6 +102,8 @@ def transfer_report(result: ClipTransfer, source: Rig, target: Rig) -> dict:
         "transferred_share": float(1 - c.dropped.mean()) if total else 1.0,
         "dropped_share": float(c.dropped.mean()) if total else 0.0,
         "dropped_on_discarded_charts": expected_drop,
+        # source points no chart (and no geodesic) finds again: the source mesh is too coarse there
+        "unmapped": int(unmapped.sum()),
         "per_curve": per_curve,
         "spread_ratio_median": float(np.median(ratios)) if ratios else None,
         "spread_ratio_p10": float(np.percentile(ratios, 10)) if ratios else None,
