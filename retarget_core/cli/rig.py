@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from .common import _usage
+
 
 def add_commands(sub) -> None:
     rig = sub.add_parser("rig", help="hand rigs")
@@ -49,6 +51,16 @@ def add_commands(sub) -> None:
     rig_import.add_argument("--wrapper-resolution", type=float, default=0.002,
                             help="URDF/MJCF: wrapper surface cell size in metres")
     rig_import.set_defaults(func=_cmd_rig_import)
+    rig_mirror = rig_sub.add_parser("mirror", help="the mirror image of a rig (a right hand as a left one): "
+                                                   "same joints, DOFs and limits, mirrored pose for the same values")
+    rig_mirror.add_argument("path", help="a rig file or demo:NAME[@RESOLUTION]")
+    rig_mirror.add_argument("--out", required=True, help="rig .usda to write")
+    rig_mirror.add_argument("--axis", choices=("x", "y", "z"), default="x",
+                            help="the mirror plane's normal, in the rig's frame (default x)")
+    rig_mirror.add_argument("--annotations", help="annotations made for a right pair (e.g. MANO_RIGHT -> this rig) ...")
+    rig_mirror.add_argument("--annotations-out", help="... written for the mirrored pair (a left clip's MANO hand "
+                                                      "onto the mirror)")
+    rig_mirror.set_defaults(func=_cmd_rig_mirror)
 
 
 def _cmd_rig_demo(args) -> int:
@@ -147,3 +159,22 @@ def _cmd_rig_import(args) -> int:
           f"({'inferred by role' if inferred else 'as the file gives them'})")
     print(f"wrote {limits_out}: the DOF limits by joint, to edit and pass back with --limits")
     return 0
+
+
+def _cmd_rig_mirror(args) -> int:
+    from ..rig.io import resolve_rig, save_rig
+    from ..rig.mirror import mirror_annotations, mirror_rig
+    from ..transfer.annotations import load_annotations, save_annotations
+
+    if bool(args.annotations) != bool(args.annotations_out):
+        raise _usage("--annotations and --annotations-out go together")
+    rig = resolve_rig(args.path)
+    mirrored = mirror_rig(rig, args.axis)
+    save_rig(mirrored, args.out)
+    print(f"wrote {args.out}: {mirrored.name}, the mirror of {rig.name} across {args.axis}")
+    if args.annotations:
+        ann = load_annotations(args.annotations)
+        save_annotations(mirror_annotations(ann, axis=args.axis, target_rig=mirrored.name), args.annotations_out)
+        print(f"wrote {args.annotations_out}: {len(ann.markers)} markers, {len(ann.curves)} curves, for the mirrored pair")
+    return 0
+
