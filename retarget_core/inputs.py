@@ -214,7 +214,7 @@ def _recorded_rig_file(clip: Clip, spec: str, clip_path) -> str:
 
 def load_inputs(clip, rig, annotations, *, source_rig=None, frames=None,
                 annotation_max_displacement: float = DEFAULT_MAX_DISPLACEMENT, target_options: dict | None = None,
-                **rig_options) -> RunInputs:
+                clip_rig_files: bool = True, **rig_options) -> RunInputs:
     """Read a run's inputs: ``clip`` and ``annotations`` file paths, ``rig`` and ``source_rig``
     file paths or ``demo:NAME[@RES]`` (``source_rig`` None: the demo hand the clip names, see
     :func:`clip_source_rig`), ``frames`` (start, end), ``"START:END"`` or None.
@@ -222,10 +222,13 @@ def load_inputs(clip, rig, annotations, *, source_rig=None, frames=None,
     the run (points within ``annotation_max_displacement`` metres, see :class:`RunInputs`); a
     mismatch they cannot survive is reported here, before any work. ``rig_options`` go to both
     rigs' loaders (:func:`~retarget_core.rig.io.load_rig`), ``target_options`` to the target's
-    only (``root_body`` of an MJCF hand, ``mapping`` for a plain UsdSkel hand's DOFs)."""
+    only (``root_body`` of an MJCF hand, ``mapping`` for a plain UsdSkel hand's DOFs).
+    ``clip_rig_files``: a rig file the clip records beside itself may be used (the command line);
+    False (the service) takes only a demo hand the clip names."""
     loaded = load_clip(clip)
     sources = {"clip": {"path": str(Path(clip).resolve()), "sha256": file_sha256(clip)}}
-    source, sources["source_rig"] = resolve_rig_source(source_rig or clip_source_rig(loaded, clip), **rig_options)
+    source, sources["source_rig"] = resolve_rig_source(
+        source_rig or clip_source_rig(loaded, clip if clip_rig_files else None), **rig_options)
     target, sources["target_rig"] = resolve_rig_source(rig, **(rig_options | {k: v for k, v in (target_options or {}).items()
                                                                              if v is not None}))
     ann = load_annotations(annotations)

@@ -51,6 +51,8 @@ def rig_info(rig) -> dict:
     meta = rig.metadata
     return {"name": rig.name, "dofs": rig.n_dofs, "dof_names": list(rig.dof_names),
             "vertices": int(surface.n_vertices), "faces": int(len(surface.faces)), "dof_limits": limits,
+            # the mesh a clip made with this hand carries (the surface before caps closed it)
+            "hand_mesh": _hand_mesh(rig),
             "dof_source": str(meta.get("dof_source", "the rig's DOF spec")),
             "free_root_added": meta.get("free_root_added") or None,  # the joint name, when one was added
             "rig_warnings": [str(w) for w in meta.get("warnings", [])]} | (
@@ -58,10 +60,37 @@ def rig_info(rig) -> dict:
         {"surface_source": meta["surface_source"]} if meta.get("surface_source") else {})
 
 
+def _hand_mesh(rig) -> dict:
+    from retarget_core.rig.hand_cut import SURFACE_SOURCE, uncapped_faces
+
+    n_faces = uncapped_faces(rig)
+    centres = 0
+    if n_faces < len(rig.surface.faces):
+        centres = sum(1 for v in (rig.metadata.get(SURFACE_SOURCE) or {}).get("vertices", []) if v < 0)
+    return {"vertices": int(rig.surface.n_vertices - centres), "faces": int(n_faces)}
+
+
 def clip_info(clip) -> dict:
     return {"frames": clip.n_frames, "fps": float(clip.fps), "source_rig": clip.source_rig,
+            "source_rig_sha256": clip.source_rig_sha256, "hand": clip.hand or "right",
             "object": clip.object_name, "hand_vertices": int(clip.hand_vertices.shape[1]),
             "hand_faces": int(len(clip.hand_faces)), "motion": clip.motion}
+
+
+def recorded_source_rig(store, owner: str, clip_asset):
+    """The owner's rig asset a clip records as its source rig by content (a GRAB import's MANO
+    hand: ``source_rig_sha256`` is that rig's asset id); None when the clip records none.
+    Raises InputError when it records one the owner does not have. A path a clip records is
+    never opened here: only the hash is used, and only among the owner's own assets."""
+    sha = clip_asset.info.get("source_rig_sha256") or ""
+    if not sha:
+        return None
+    asset = store.asset(owner, sha, "rig")
+    if asset is None:
+        raise InputError(f"the clip records its source rig by content (rig {sha}), and you have no such rig asset: "
+                         "upload the rig the clip was made with (POST /v1/assets/rig) or pass source_rig",
+                         source="clip", element="source_rig")
+    return asset
 
 
 def annotations_info(ann) -> dict:
@@ -207,13 +236,15 @@ def _unpack_bundle(archive: Path, folder: Path, limit: int) -> Path:
     return entries[0]
 
 
-def import_grab_clip(sequence: Path, mano: Path, object_mesh: Path, table_mesh: Path | None, vtemp: Path | None):
-    """A validated :class:`~retarget_core.clip.Clip` from uploaded GRAB files (the core's
-    restricted loader: nothing outside numpy's array types is ever unpickled)."""
-    from retarget_core.clip.grab import import_grab
+def import_grab_clip(sequence: Path, mano: Path, object_mesh: Path, table_mesh: Path | None, vtemp: Path | None,
+                     hand: str = "right"):
+    """One hand of uploaded GRAB files as a :class:`~retarget_core.clip.grab.GrabHand` (the
+    clip and what its MANO source rig is built from), by the core's restricted loader: nothing
+    outside numpy's array types is ever unpickled."""
+    from retarget_core.clip.grab import import_grab_hand
 
     try:
-        return import_grab(sequence, mano, object_mesh=object_mesh, table_mesh=table_mesh, vtemp=vtemp)
+        return import_grab_hand(sequence, mano, hand=hand, object_mesh=object_mesh, table_mesh=table_mesh, vtemp=vtemp)
     except InputError as err:
         message = str(err)
         for p in (sequence, mano, object_mesh, table_mesh, vtemp):

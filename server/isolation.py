@@ -67,15 +67,16 @@ def validate_isolated(kind: str, tmp: Path, filename: str, *, scratch: Path, bun
     return Path(result["path"]), result["suffix"], result["info"]
 
 
-def import_grab_isolated(paths: dict, out: Path, *, scratch: Path, memory_bytes: int, interval: float = 0.05) -> dict:
+def import_grab_isolated(paths: dict, out: Path, *, scratch: Path, memory_bytes: int, hand: str = "right",
+                         interval: float = 0.05) -> dict:
     """:func:`server.assets.import_grab_clip` on the uploaded files ``paths`` in a child
-    process limited to ``memory_bytes``; the clip is saved at ``out``; returns its info. Raises
-    as :func:`validate_isolated`."""
-    result = _run_child({"task": "grab", "paths": {k: None if v is None else str(Path(v).resolve())
-                                                   for k, v in paths.items()},
-                         "out": str(Path(out).resolve())},
-                        scratch=scratch, memory_bytes=memory_bytes, interval=interval, what="GRAB import")
-    return result["info"]
+    process limited to ``memory_bytes``: the clip is saved at ``out`` and its MANO source rig
+    beside it; returns {"info": the clip's info, "rig_path", "rig_info"}. Raises as
+    :func:`validate_isolated`."""
+    return _run_child({"task": "grab", "paths": {k: None if v is None else str(Path(v).resolve())
+                                                 for k, v in paths.items()},
+                       "out": str(Path(out).resolve()), "hand": hand},
+                      scratch=scratch, memory_bytes=memory_bytes, interval=interval, what="GRAB import")
 
 
 def _run_child(request_doc: dict, *, scratch: Path, memory_bytes: int, interval: float, what: str) -> dict:
@@ -187,12 +188,24 @@ def _validate(req: dict) -> dict:
 
 
 def _grab(req: dict) -> dict:
-    from .assets import clip_info, import_grab_clip
+    from retarget_core.clip.grab import save_grab_hand
+    from retarget_core.rig.io import load_rig
+
+    from .assets import clip_info, import_grab_clip, rig_info
+
+    from retarget_core.clip import load_clip
+    from retarget_core.errors import InputError
+
+    from .assets import UploadError
 
     paths = {k: None if v is None else Path(v) for k, v in req["paths"].items()}
-    clip = import_grab_clip(**paths)
-    clip.save(Path(req["out"]))
-    return {"info": clip_info(clip)}
+    imported = import_grab_clip(**paths, hand=req.get("hand", "right"))
+    try:
+        clip_path, rig_path = save_grab_hand(imported, Path(req["out"]))
+    except InputError as err:  # a MANO file whose mesh is no hand (the clip alone would have no source)
+        raise UploadError(f"cannot build the MANO source rig: {err}") from err
+    return {"info": clip_info(load_clip(clip_path)), "rig_path": str(rig_path),
+            "rig_info": rig_info(load_rig(rig_path))}
 
 
 if __name__ == "__main__":

@@ -139,6 +139,17 @@ def run_job(store: Store, job_id: str, settings: Settings, *, parent: int | None
                 from retarget_core.rig.usd_io import check_confined_layers
 
                 check_confined_layers(paths[field], paths[field])
+        recorded_id = None
+        if request.source_rig is None:  # a GRAB clip's MANO hand, found by its hash among the owner's rigs
+            from .assets import recorded_source_rig
+
+            recorded = recorded_source_rig(store, job.owner, store.asset(job.owner, request.clip, "clip"))
+            if recorded is not None:
+                paths["source_rig"] = store.asset_path(recorded)
+                recorded_id = recorded.sha256
+                from retarget_core.rig.usd_io import check_confined_layers
+
+                check_confined_layers(paths["source_rig"], paths["source_rig"])
         config = load_config(None, request.preset, request.overrides)
         # built atlases are kept per (source, target, annotations): a rig's second job skips the build
         executor = Executor(workers=settings.frame_workers, dask_scheduler=settings.dask_scheduler,
@@ -148,8 +159,11 @@ def run_job(store: Store, job_id: str, settings: Settings, *, parent: int | None
         from .assets import stored_rig_options
 
         inputs = load_inputs(paths["clip"], paths["rig"], paths["annotations"], source_rig=paths.get("source_rig"),
-                             frames=request.frames, target_options=stored_rig_options(rig_asset.info))
+                             frames=request.frames, target_options=stored_rig_options(rig_asset.info),
+                             clip_rig_files=False)  # never a path a clip records: only what is resolved above
         _asset_provenance(inputs.sources, request)
+        if recorded_id is not None:
+            inputs.sources["source_rig"]["asset"] = recorded_id
         result = retarget(inputs, config, executor)
         # the store's folders are named relative to the data directory, as everywhere the client sees
         result.provenance["executor"]["atlas_cache"] = str(store.paths.atlas_cache.relative_to(store.paths.root))

@@ -62,7 +62,8 @@ class GrabImport(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     sequence: str = Field(pattern=SHA256, description="the GRAB sequence .npz")
-    mano: str = Field(pattern=SHA256, description="the MANO right-hand model (.pkl)")
+    mano: str = Field(pattern=SHA256, description="the MANO model of that hand (MANO_RIGHT.pkl / MANO_LEFT.pkl)")
+    hand: Literal["right", "left"] = Field(default="right", description="which hand of the sequence to import")
     object_mesh: str = Field(pattern=SHA256, description="the object's mesh (.ply / .obj / .stl)")
     table_mesh: str | None = Field(default=None, pattern=SHA256)
     vtemp: str | None = Field(default=None, pattern=SHA256, description="the subject's hand template mesh")

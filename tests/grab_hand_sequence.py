@@ -10,7 +10,9 @@ with GRAB's codes of the nearest hand joint. Everything is written in GRAB's fol
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import io
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,6 +22,7 @@ from scipy.spatial.transform import Rotation
 
 from grab_fixtures import PARENTS, write_grab_npz, write_mano_plain, write_mesh
 from mano_hand import make_hand_mano_raw
+from retarget_core.cli import main
 from retarget_core.clip.demo import CONTACT_THRESHOLD, build_demo_timeline, contact_code
 from retarget_core.clip.grab import ManoModel, load_mano_model, mano_forward
 from retarget_core.rig.mano import MANO_JOINT_NAMES, mano_params, mano_rig
@@ -180,3 +183,13 @@ def geodesic_degrees(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     rel = np.einsum("...ji,...jk->...ik", a, b)
     cos = (np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def run_cli(*args) -> str:
+    """``handretarget ARGS`` in this process (arguments str()-ed); asserts it succeeded and
+    returns what it printed."""
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert main([str(a) for a in args]) == 0
+    return out.getvalue()
+

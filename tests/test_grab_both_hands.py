@@ -5,15 +5,12 @@ the right one."""
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 
 import numpy as np
 import pytest
 
-from grab_hand_sequence import MIRROR, write_known_sequence
-from retarget_core.cli import main
+from grab_hand_sequence import MIRROR, run_cli, write_known_sequence
 from retarget_core.clip import load_clip
 from retarget_core.errors import InputError
 from retarget_core.rig.hand_model import hand_model
@@ -29,20 +26,13 @@ MIRROR_TOLERANCE = 0.001
 MIRROR_VERTEX_MAX = 0.002
 
 
-def _run(*args) -> str:
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out):
-        assert main([str(a) for a in args]) == 0
-    return out.getvalue()
-
-
 @pytest.fixture(scope="module")
 def both(tmp_path_factory):
     root = tmp_path_factory.mktemp("grab2")
     known = write_known_sequence(root, n_frames=140, lead=40, both_hands=True, name="bottle_both")
     out = root / "clips" / "s1.npz"
     out.parent.mkdir()
-    _run("import-grab", known.path, "--mano", known.mano, "--mano-left", root / "mano" / "MANO_LEFT.pkl",
+    run_cli("import-grab", known.path, "--mano", known.mano, "--mano-left", root / "mano" / "MANO_LEFT.pkl",
          "--hand", "both", "--grab-root", root, "--out", out)
     return root, known
 
@@ -87,16 +77,16 @@ def test_left_result_mirrors_the_right(both, tmp_path):
     root, _ = both
     clips = root / "clips"
     right_rig, left_rig = tmp_path / "human_alt_right.usda", tmp_path / "human_alt_left.usda"
-    _run("rig", "demo", "--out", tmp_path / "lib", "--hand", "human_alt", "--resolution", "0.006")
+    run_cli("rig", "demo", "--out", tmp_path / "lib", "--hand", "human_alt", "--resolution", "0.006")
     (tmp_path / "lib" / "human_alt.usda").rename(right_rig)
     ann_right, ann_left = tmp_path / "right.json", tmp_path / "left.json"
-    _run("annotate", "propose", "--source", clips / "s1_right.npz", "--target", right_rig, "--out", ann_right)
-    printed = _run("rig", "mirror", right_rig, "--out", left_rig, "--annotations", ann_right, "--annotations-out", ann_left)
+    run_cli("annotate", "propose", "--source", clips / "s1_right.npz", "--target", right_rig, "--out", ann_right)
+    printed = run_cli("rig", "mirror", right_rig, "--out", left_rig, "--annotations", ann_right, "--annotations-out", ann_left)
     assert str(left_rig) in printed
     results = {}
     for side, rig, ann in (("right", right_rig, ann_right), ("left", left_rig, ann_left)):
         out = tmp_path / side
-        _run("retarget", "--clip", clips / f"s1_{side}.npz", "--rig", rig, "--annotations", ann, "--out", out,
+        run_cli("retarget", "--clip", clips / f"s1_{side}.npz", "--rig", rig, "--annotations", ann, "--out", out,
              "--workers", 2)
         values = np.array(json.loads((out / "animation.json").read_text())["values"])
         target = load_rig(rig)

@@ -8,8 +8,6 @@ median contact distance (mm) at the delivered curves."""
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import shutil
 from dataclasses import replace
@@ -17,8 +15,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from grab_hand_sequence import geodesic_degrees, write_known_sequence
-from retarget_core.cli import main
+from grab_hand_sequence import geodesic_degrees, run_cli, write_known_sequence
 from retarget_core.clip import load_clip
 from retarget_core.clip.grab import rodrigues
 from retarget_core.clip.markers import MANO_MARKERS
@@ -38,20 +35,13 @@ HUMAN_LIKE = ("source_human", "human_alt")
 OTHERS = ("witch", "alien", "prosthetic_1dof", "prosthetic_2dof", "robot4")
 
 
-def _run(*args) -> str:
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out):
-        assert main([str(a) for a in args]) == 0
-    return out.getvalue()
-
-
 @pytest.fixture(scope="module")
 def imported(tmp_path_factory):
     root = tmp_path_factory.mktemp("grab")
     known = write_known_sequence(root)
     clip_path = root / "clips" / "s1_bottle.npz"
     clip_path.parent.mkdir()
-    printed = _run("import-grab", known.path, "--mano", known.mano, "--grab-root", root, "--out", clip_path)
+    printed = run_cli("import-grab", known.path, "--mano", known.mano, "--grab-root", root, "--out", clip_path)
     return known, clip_path, clip_path.with_name("s1_bottle.source_rig.usda"), printed
 
 
@@ -102,7 +92,7 @@ def test_recorded_rig_is_used_only_beside_the_clip_and_unchanged(imported, tmp_p
 def test_proposal_from_mano_uses_the_paper_marker_vertices(imported, tmp_path):
     _, clip_path, _, _ = imported
     out = tmp_path / "ann.json"
-    _run("annotate", "propose", "--source", clip_path, "--target", "demo:human_alt@0.006", "--out", out)
+    run_cli("annotate", "propose", "--source", clip_path, "--target", "demo:human_alt@0.006", "--out", out)
     ann = load_annotations(out)
     rig = load_rig(clip_path.with_name("s1_bottle.source_rig.usda"))
     assert sorted(m.name for m in ann.markers) == sorted(MANO_MARKERS)
@@ -114,14 +104,14 @@ def test_proposal_from_mano_uses_the_paper_marker_vertices(imported, tmp_path):
 
 
 def _retarget(clip_path, rig, annotations, out) -> dict:
-    _run("retarget", "--clip", clip_path, "--rig", rig, "--annotations", annotations, "--out", out, "--workers", 2)
+    run_cli("retarget", "--clip", clip_path, "--rig", rig, "--annotations", annotations, "--out", out, "--workers", 2)
     return json.loads((out / "result.json").read_text())
 
 
 def test_mano_to_mano_recovers_the_finger_rotations(imported, tmp_path):
     known, clip_path, rig_path, _ = imported
     ann = tmp_path / "mano.json"
-    _run("annotate", "propose", "--source", clip_path, "--target", rig_path, "--out", ann)
+    run_cli("annotate", "propose", "--source", clip_path, "--target", rig_path, "--out", ann)
     result = _retarget(clip_path, rig_path, ann, tmp_path / "out")  # no --source-rig: the clip's own
     assert result["provenance"]["inputs"]["source_rig"]["path"] == str(rig_path.resolve())
     rig = load_rig(rig_path)
@@ -141,7 +131,7 @@ def test_onto_every_demo_hand_without_a_source_rig_flag(imported, tmp_path, hand
     _, clip_path, _, _ = imported
     rig = f"demo:{hand}@0.004"
     ann = tmp_path / f"{hand}.json"
-    _run("annotate", "propose", "--source", clip_path, "--target", rig, "--out", ann)
+    run_cli("annotate", "propose", "--source", clip_path, "--target", rig, "--out", ann)
     inputs = load_inputs(clip_path, rig, ann)
     assert inputs.source_rig.name == "mano_right"
     contact = _retarget(clip_path, rig, ann, tmp_path / hand)["summary"]["contact_distance_median_mm"]

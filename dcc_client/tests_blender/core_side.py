@@ -5,7 +5,7 @@ bpy environment pins numpy < 2 and cannot import retarget_core, so files pass be
     python core_side.py rig RIG.usda POSE.json OUT.npy
                                                   read the rig, skin it at the DOF values in
                                                   POSE.json ({name: value}), print a summary
-    python core_side.py grab OUT_DIR              synthetic GRAB sequence + MANO model + object mesh
+    python core_side.py grab OUT_DIR              GRAB sequence on a hand-shaped MANO model + meshes
     python core_side.py annotations FILE RIG.usda check an annotation file against the rig and
                                                   the demo source hand
     python core_side.py hand OUT_DIR              the demo target hand as arrays (hand.json: joints,
@@ -45,16 +45,16 @@ def inputs(out: Path) -> None:
 
 
 def grab(out: Path) -> None:
-    """Synthetic GRAB files (the service tests' generator): sequence, MANO model, object mesh."""
+    """GRAB files on a hand-shaped MANO model (the core tests' generator, tests/grab_hand_sequence.py):
+    a 60-frame bottle grasp, the MANO model, the object mesh and the subject's hand template."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests"))
-    from grab_fixtures import make_grab_sequence, make_mano_raw, write_grab_npz, write_mano_official
+    from grab_hand_sequence import write_known_sequence
 
-    raw = make_mano_raw(0, rigid=False)
-    seq = make_grab_sequence(out, raw)
-    mano = write_mano_official(out / "MANO_RIGHT.pkl", raw)
-    sequence = write_grab_npz(out / "grab" / "s1" / "apple_eat_1.npz", seq)
-    print(json.dumps({"sequence": str(sequence), "mano": str(mano),
-                      "object_mesh": str(out / "tools/object_meshes/contact_meshes/apple.ply")}))
+    known = write_known_sequence(out, n_frames=60, lead=30)
+    print(json.dumps({"sequence": str(known.path), "mano": str(known.mano),
+                      "object_mesh": str(out / "tools/object_meshes/contact_meshes/bottle_pick_place.ply"),
+                      "vtemp": str(out / "tools/subject_meshes/male/s1_rhand.ply"),
+                      "contact_frames": int(known.contact_frames.sum())}))
 
 
 def rig(path: str, pose_json: str, out_npy: str) -> None:

@@ -201,9 +201,10 @@ def download_asset(asset_id: str = Path(..., pattern=SHA256), kind: AssetKind | 
                         media_type="application/octet-stream")
 
 
-def _save_new_asset(store: Store, owner: str, kind: str, name: str, write, info: dict) -> tuple[AssetRow, bool]:
+def _save_new_asset(store: Store, owner: str, kind: str, name: str, write, info: dict,
+                    suffix: str | None = None) -> tuple[AssetRow, bool]:
     """Store a file the service made (``write(path)``) as ``owner``'s asset; (asset, created)."""
-    tmp = store.new_tmp(".npz" if kind == "clip" else ".json")
+    tmp = store.new_tmp(suffix or (".npz" if kind == "clip" else ".json"))
     try:
         write(tmp)
         data = tmp.read_bytes()
@@ -217,8 +218,10 @@ def _save_new_asset(store: Store, owner: str, kind: str, name: str, write, info:
 @router.post("/clips/import-grab", response_model=Asset, status_code=201, responses=ERRORS | BAD_BODY)
 def import_grab(body: GrabImport, response: Response, owner: str = Depends(current_owner),
                 store: Store = Depends(get_store), settings: Settings = Depends(get_settings)):
-    """Convert a GRAB sequence (with the user's MANO model and the object's mesh, uploaded as
-    ``file`` assets) into a clip asset."""
+    """Convert one hand of a GRAB sequence (with the user's MANO model of that hand and the
+    object's mesh, uploaded as ``file`` assets) into a clip asset and its MANO source rig, a rig
+    asset (the clip's ``info.source_rig_asset``): a job on the clip finds that rig by its content
+    hash among your assets, so no source_rig is needed."""
     def path(field):
         value = getattr(body, field)
         return None if value is None else store.asset_path(owned(store, owner, value, "file", field))
@@ -228,16 +231,20 @@ def import_grab(body: GrabImport, response: Response, owner: str = Depends(curre
     scratch.mkdir()
     try:  # in a child process with the validation memory limit, like an upload
         try:
-            info = import_grab_isolated(paths, scratch / "clip.npz", scratch=scratch,
-                                        memory_bytes=settings.validation_memory_mb * MIB)
+            imported = import_grab_isolated(paths, scratch / "clip.npz", scratch=scratch, hand=body.hand,
+                                            memory_bytes=settings.validation_memory_mb * MIB)
         except (UploadError, ValidatorCrashed) as err:
             raise HTTPException(422, f"cannot import the GRAB sequence: {err}") from err
         except MemoryLimitExceeded as err:
             raise HTTPException(413, f"importing the GRAB sequence {err}; the service refuses imports that need "
                                      "more (--validation-memory-mb)") from err
+        rig_name = body.name.removesuffix(".npz") + ".source_rig.usda"
+        rig_asset, _ = _save_new_asset(store, owner, "rig", rig_name,
+                                       lambda p: shutil.move(imported["rig_path"], str(p)),
+                                       imported["rig_info"] | {"imported_from": "grab"}, suffix=".usda")
         asset, created = _save_new_asset(store, owner, "clip", body.name,
                                          lambda p: shutil.move(str(scratch / "clip.npz"), str(p)),
-                                         info | {"imported_from": "grab"})
+                                         imported["info"] | {"imported_from": "grab", "source_rig_asset": rig_asset.sha256})
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     response.status_code = 201 if created else 200

@@ -11,7 +11,7 @@ from fastapi import APIRouter, Depends, Header, HTTPException, Path, Query, Requ
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, StreamingResponse
 
-from ..deps import current_owner, decode_cursor, encode_cursor, get_settings, get_store
+from ..deps import current_owner, decode_cursor, encode_cursor, get_settings, get_store, require_intact
 from ..schemas import DEFAULT_PAGE, MAX_PAGE, Job, JobCreate, JobList, JobState, Problem
 from ..settings import Settings
 from ..storage import JobRow, Store
@@ -58,17 +58,26 @@ def check_request(body: JobCreate, owner: str, store: Store) -> None:
     from retarget_core.inputs import clip_source_rig, frame_range
     from retarget_core.solve.config import load_config
 
+    from ..assets import recorded_source_rig
+
     clip = owned(store, owner, body.clip, "clip", "clip")
     rig = owned(store, owner, body.rig, "rig", "rig")
     annotations = owned(store, owner, body.annotations, "annotations", "annotations")
     source = owned(store, owner, body.source_rig, "rig", "source_rig") if body.source_rig else None
+    if source is None:
+        try:  # a GRAB clip's MANO hand: by its content hash, among the caller's own rigs
+            source = recorded_source_rig(store, owner, clip)
+        except InputError as err:
+            raise HTTPException(422, str(err)) from err
+        if source is not None:
+            require_intact(store, source, "source_rig")
     try:
         load_config(None, body.preset, body.overrides)
     except InputError as err:  # e.g. "workers" names the executor option (the service's --workers)
         raise HTTPException(422, str(err) if err.source == "overrides" else f"overrides: {err}") from err
     try:
         frame_range(body.frames, clip.info["frames"])
-        if source is None:
+        if source is None:  # no rig given or recorded by hash: the clip must name a demo hand
             # the clip's source_rig field as recorded at upload: the clip is not read again here
             named = (SimpleNamespace(source_rig=clip.info["source_rig"]) if "source_rig" in clip.info
                      else load_clip(store.asset_path(clip)))
@@ -79,10 +88,15 @@ def check_request(body: JobCreate, owner: str, store: Store) -> None:
     for side, asset, field in (("target", rig, "rig"), ("source", source, "source_rig")):
         if asset is not None:
             _same_mesh(ann[side], asset.info["vertices"], asset.info["faces"], side, f"{field} {asset.info['name']!r}")
-    # the clip's hand is the source hand's surface: checked here too, also for a demo source hand
-    _same_mesh(ann["source"], clip.info["hand_vertices"], clip.info["hand_faces"], "source",
-               "the clip's hand", hint="pass the rig the clip was made with as source_rig (for GRAB clips: the "
-                                       "MANO hand as USD) with annotations made for it")
+    # the clip's hand is the source hand's surface (before any caps that close it): checked
+    # here too, also for a demo source hand
+    hand_mesh = (source.info.get("hand_mesh") if source is not None else None) or ann["source"]
+    if (hand_mesh["vertices"], hand_mesh["faces"]) != (clip.info["hand_vertices"], clip.info["hand_faces"]):
+        what = f"source_rig {source.info['name']!r}" if source is not None else "the annotations' source hand"
+        raise HTTPException(422, f"the clip's hand has {clip.info['hand_vertices']} vertices and "
+                                 f"{clip.info['hand_faces']} faces, but {what} carries {hand_mesh['vertices']} and "
+                                 f"{hand_mesh['faces']}: pass the rig the clip was made with as source_rig (a GRAB "
+                                 "import makes it: its clip's info.source_rig_asset) with annotations made for it")
 
 
 def _same_mesh(sig: dict, vertices: int, faces: int, side: str, what: str, hint: str = "") -> None:

@@ -1,9 +1,12 @@
 """GRAB sequences through the service: uploaded as files with the user's MANO model and the
-meshes, imported by the core's restricted loader into a clip asset; a booby-trapped pickle is
-refused with a 422 and never runs."""
+meshes, imported by the core's restricted loader into a clip asset and its MANO source rig (a
+rig asset), a job run on the clip with no source_rig (the rig found by its hash among the
+owner's assets, never by a path), the result imported; a booby-trapped pickle is refused with
+a 422 and never runs."""
 
 from __future__ import annotations
 
+import json
 import os
 
 import numpy as np
@@ -11,6 +14,7 @@ import pytest
 
 from dcc_client.client import ServiceError
 from grab_fixtures import make_grab_sequence, make_mano_raw, write_grab_npz, write_mano_official
+from grab_hand_sequence import write_known_sequence
 
 
 class _Evil:
@@ -34,19 +38,63 @@ def grab_files(tmp_path_factory):
     return dict(root=root, seq=seq, sequence=path, mano=mano, **meshes)
 
 
-def test_grab_import_makes_a_clip_asset(service, grab_files, inputs):
+@pytest.fixture(scope="module")
+def hand_files(tmp_path_factory):
+    """A GRAB-format sequence on a hand-shaped MANO model (60 frames of a bottle grasp)."""
+    root = tmp_path_factory.mktemp("grab_hand")
+    known = write_known_sequence(root, n_frames=60, lead=30)
+    return dict(sequence=known.path, mano=known.mano,
+                object_mesh=root / "tools/object_meshes/contact_meshes/bottle_pick_place.ply",
+                vtemp=root / "tools/subject_meshes/male/s1_rhand.ply")
+
+
+def test_grab_import_to_an_imported_result(service, hand_files, tmp_path):
     c = service.client("grace")
-    ids = {k: c.upload("file", grab_files[k])["id"] for k in ("sequence", "mano", "object_mesh", "table_mesh", "vtemp")}
+    ids = {k: c.upload("file", hand_files[k])["id"] for k in ("sequence", "mano", "object_mesh", "vtemp")}
     clip = c.import_grab(**ids)
-    assert clip["kind"] == "clip" and clip["info"]["frames"] == 6 and clip["info"]["hand_vertices"] == 778
-    assert clip["info"]["imported_from"] == "grab"
+    assert clip["kind"] == "clip" and clip["info"]["frames"] == 60 and clip["info"]["hand_vertices"] == 778
+    assert clip["info"]["imported_from"] == "grab" and clip["info"]["hand"] == "right"
     assert clip in c.assets("clip")
-    # the clip names no demo source hand: a job needs the MANO hand as source_rig
-    rig = c.upload("rig", inputs["rig"])
-    ann = c.upload("annotations", inputs["annotations"])
+    # its MANO source rig is an asset too, and the clip records it by that asset's id
+    (rig,) = [a for a in c.assets("rig") if a["id"] == clip["info"]["source_rig_asset"]]
+    assert clip["info"]["source_rig_sha256"] == rig["id"] and rig["info"]["dofs"] == 51
+    assert rig["info"]["hand_mesh"] == {"vertices": 778, "faces": clip["info"]["hand_faces"]}
+    from retarget_core.rig.demo_hands import demo_hand
+    from retarget_core.rig.io import save_rig
+
+    save_rig(demo_hand("human_alt", 0.006), tmp_path / "human_alt.usda")
+    target = c.upload("rig", tmp_path / "human_alt.usda")
+    ann = c.propose_annotations(target_rig=target["id"], source_rig=rig["id"])
+    assert ann["info"]["markers"] == 25
+    job = c.submit(clip=clip["id"], rig=target["id"], annotations=ann["id"], evaluate=False)  # no source_rig
+    done = c.wait(job["id"], timeout=900)
+    assert done["state"] == "succeeded", done
+    files = c.download_result(job["id"], tmp_path / "result")
+    result = json.loads(files["result.json"].read_text())
+    assert result["provenance"]["inputs"]["source_rig"]["asset"] == rig["id"]
+    assert result["summary"]["contact_distance_median_mm"] < 5.0
+    from retarget_core.export.usd_animation import read_dof_splines
+
+    curves = read_dof_splines(files["animation.usda"])
+    assert len(curves) == 54  # human_alt's DOFs, one spline each
+
+    # another owner with the same clip bytes but not the rig: refused, naming what to upload
+    other = service.client("olga")
+    theirs = other.upload_bytes("clip", c.asset_content(clip["id"]), "copy.npz")
+    t_rig = other.upload("rig", tmp_path / "human_alt.usda")
+    t_ann = other.upload_bytes("annotations", c.asset_content(ann["id"]), "annotations.json")
     with pytest.raises(ServiceError) as err:
-        c.submit(clip=clip["id"], rig=rig["id"], annotations=ann["id"])
-    assert err.value.status == 422 and "source_rig" in err.value.detail
+        other.submit(clip=theirs["id"], rig=t_rig["id"], annotations=t_ann["id"])
+    assert err.value.status == 422 and rig["id"] in err.value.detail and "POST /v1/assets/rig" in err.value.detail
+
+
+def test_a_mano_file_that_is_no_hand_is_refused(service, grab_files):
+    c = service.client("grace2")
+    ids = {k: c.upload("file", grab_files[k])["id"] for k in ("sequence", "mano", "object_mesh", "table_mesh", "vtemp")}
+    with pytest.raises(ServiceError) as err:
+        c.import_grab(**ids)
+    assert err.value.status == 422 and "cannot build the MANO source rig" in err.value.detail
+    assert c.assets("clip") == [] and c.assets("rig") == []
 
 
 def test_booby_trapped_sequence_is_refused_and_never_runs(service, grab_files, tmp_path):

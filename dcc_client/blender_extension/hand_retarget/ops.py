@@ -169,6 +169,8 @@ class HAND_RETARGET_OT_propose_annotations(_Op, bpy.types.Operator):
             source = None
             if scene.source_rig_path:
                 source = client.upload("rig", bpy.path.abspath(scene.source_rig_path))["id"]
+            elif scene.clip_kind == 'GRAB':  # the MANO hand the import makes from the user's model
+                _, source = import_grab(client, scene)
             asset = client.propose_annotations(arm.hand_retarget.rig_id, source_rig=source)
             counts = annotations.load_document(client.asset_content(asset["id"], kind="annotations"), arm, mesh)
         except (annotations.AnnotationError, rig_export.RigExportError) + ERRORS as err:
@@ -396,12 +398,7 @@ class HAND_RETARGET_OT_submit(_Op, bpy.types.Operator):
             if not s.clip_path:
                 raise ValueError("choose a clip file")
             return client.upload("clip", bpy.path.abspath(s.clip_path))["id"]
-        paths = {k: bpy.path.abspath(getattr(s, f"grab_{k}")) for k in ("sequence", "mano", "object_mesh")}
-        missing = [k for k, p in paths.items() if not p]
-        if missing:
-            raise ValueError(f"GRAB needs the {', '.join(missing)} file(s)")
-        ids = {k: client.upload("file", p)["id"] for k, p in paths.items()}
-        return client.import_grab(ids["sequence"], ids["mano"], ids["object_mesh"])["id"]
+        return import_grab(client, s)[0]
 
 
 class HAND_RETARGET_OT_cancel(_Op, bpy.types.Operator):
@@ -420,6 +417,23 @@ class HAND_RETARGET_OT_cancel(_Op, bpy.types.Operator):
         jobs.apply_job(s, job)
         self.report({'INFO'}, f"job {s.job_id[:12]}: {job['state']}")
         return {'FINISHED'}
+
+
+def import_grab(client, s) -> tuple[str, str]:
+    """Upload the scene's GRAB files and let the service import the chosen hand: (the clip's
+    asset id, its MANO source rig's). The same files give the same assets (content ids), so
+    proposing and then submitting imports once. A job on the clip needs no source rig: the
+    service finds the MANO hand by the hash the clip records."""
+    paths = {k: bpy.path.abspath(getattr(s, f"grab_{k}")) for k in ("sequence", "mano", "object_mesh")}
+    missing = [k.replace("_", " ") for k, p in paths.items() if not p]
+    if missing:
+        raise ValueError(f"GRAB needs the {', '.join(missing)} file(s)")
+    if s.grab_vtemp:
+        paths["vtemp"] = bpy.path.abspath(s.grab_vtemp)
+    ids = {k: client.upload("file", p)["id"] for k, p in paths.items()}
+    clip = client.import_grab(ids.pop("sequence"), ids.pop("mano"), ids.pop("object_mesh"), hand=s.grab_hand, **ids)
+    s.grab_clip_id, s.grab_source_rig_id = clip["id"], clip["info"].get("source_rig_asset", "")
+    return s.grab_clip_id, s.grab_source_rig_id
 
 
 def frame_range(s):

@@ -96,9 +96,18 @@ class HR_SceneSettings(bpy.types.PropertyGroup):
     grab_sequence: StringProperty(name="Sequence", subtype='FILE_PATH')
     grab_mano: StringProperty(name="MANO model", subtype='FILE_PATH')
     grab_object_mesh: StringProperty(name="Object mesh", subtype='FILE_PATH')
+    grab_vtemp: StringProperty(name="Hand template", subtype='FILE_PATH',
+                               description="The subject's hand template mesh (GRAB's tools/subject_meshes); empty: "
+                                           "the MANO model's mean hand")
+    grab_hand: EnumProperty(name="Hand", items=[('right', "Right", "The sequence's right hand (MANO_RIGHT.pkl)"),
+                                                ('left', "Left", "The sequence's left hand (MANO_LEFT.pkl)")],
+                            default='right')
+    # what the service made of the GRAB files: the clip and its MANO source rig (asset ids)
+    grab_clip_id: StringProperty(default="", options={'HIDDEN'})
+    grab_source_rig_id: StringProperty(default="", options={'HIDDEN'})
     source_rig_path: StringProperty(name="Source rig", subtype='FILE_PATH',
-                                    description="USD of the hand the clip was captured with (GRAB: the MANO "
-                                                "hand); empty: the demo source hand")
+                                    description="USD of the hand the clip was captured with; empty: the clip's own "
+                                                "(a GRAB import's MANO hand, else the demo source hand)")
     preset: EnumProperty(name="Preset", items=[('default', "Default", "The service's default settings"),
                                                ('paper', "Paper", "The paper's settings")], default='default')
     overrides: StringProperty(name="Overrides", default="",

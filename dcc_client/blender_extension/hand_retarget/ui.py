@@ -96,9 +96,11 @@ class HAND_RETARGET_PT_panel(bpy.types.Panel):
         if s.clip_kind == 'NATIVE':
             box.prop(s, "clip_path")
         else:
+            box.prop(s, "grab_hand", expand=True)
             box.prop(s, "grab_sequence")
             box.prop(s, "grab_mano")
             box.prop(s, "grab_object_mesh")
+            box.prop(s, "grab_vtemp")
         box.prop(s, "source_rig_path")
         row = box.row()
         row.prop(s, "preset")
