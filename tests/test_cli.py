@@ -102,15 +102,28 @@ def test_import_grab_command_end_to_end(tmp_path, capsys):
 
     from retarget_core.clip import load_clip
 
+    # a MANO-format file whose triangles are no hand surface: refused, saying why (no source rig)
     raw = make_mano_raw(0)
     mano = write_mano_official(tmp_path / "MANO_RIGHT.pkl", raw)
     seq = make_grab_sequence(tmp_path, raw)
     sequence = write_grab_npz(tmp_path / "grab" / "s1" / "apple_eat_1.npz", seq)
     out = tmp_path / "apple.npz"
-    assert main(["import-grab", str(sequence), "--mano", str(mano), "--grab-root", str(tmp_path), "--out", str(out)]) == 0
-    assert "wrote" in capsys.readouterr().out
+    assert main(["import-grab", str(sequence), "--mano", str(mano), "--grab-root", str(tmp_path), "--out", str(out)]) == 2
+    assert "do not form a hand surface" in capsys.readouterr().err and not out.exists()
+    # the hand-shaped model: the clip and its MANO source rig beside it
+    from mano_hand import make_hand_mano_raw
+
+    raw = make_hand_mano_raw()
+    (tmp_path / "hand").mkdir()
+    mano = write_mano_official(tmp_path / "hand" / "MANO_RIGHT.pkl", raw)
+    seq = make_grab_sequence(tmp_path / "hand", raw)
+    sequence = write_grab_npz(tmp_path / "hand" / "grab" / "s1" / "apple_eat_1.npz", seq)
+    assert main(["import-grab", str(sequence), "--mano", str(mano), "--grab-root", str(tmp_path / "hand"),
+                 "--out", str(out)]) == 0
+    assert f"wrote {out.with_name('apple.source_rig.usda')}" in capsys.readouterr().out
     clip = load_clip(out)
     assert clip.n_frames == 6 and clip.object_name == "apple" and len(clip.marker_names) == 25
+    assert clip.source_rig == "apple.source_rig.usda" and len(clip.source_rig_sha256) == 64
 
 
 def test_annotate_propose_and_transfer_commands(clip_dir, tmp_path, capsys):
@@ -142,7 +155,7 @@ def test_transfer_with_annotations_for_another_rig_is_a_clear_error(clip_dir, tm
 # -- imported only when serve/token run and a failed import shown
 
 HANDRETARGET = Path(sys.executable).with_name("handretarget")
-COMMANDS = ["demo", "rig", "clip", "import-grab", "annotate", "transfer", "transfer-demo", "retarget", "evaluate",
+COMMANDS = ["demo", "rig", "clip", "import-grab", "annotate", "transfer", "transfer-demo", "retarget", "batch", "evaluate",
             "grid", "compare", "bench", "serve", "token"]
 
 

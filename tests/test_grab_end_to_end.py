@@ -138,3 +138,35 @@ def test_onto_every_demo_hand_without_a_source_rig_flag(imported, tmp_path, hand
     bound = HUMAN_MM if hand in HUMAN_LIKE else OTHER_MM
     print(f"\nMANO -> {hand}: median contact distance {contact:.2f} mm (bound {bound})")
     assert contact <= bound
+
+
+def test_sequence_without_table_or_contacts(imported, tmp_path):
+    """GRAB sequences may have no table and a hand that never touches the object: both import,
+    the latter says so, and its retarget follows the markers alone."""
+    from grab_fixtures import write_grab_npz
+    from retarget_core.clip.grab import load_grab_sequence
+
+    known, clip_path, _, _ = imported
+    assert load_clip(clip_path).table_pose is None  # the sequence has no table: the clip has none
+    seq = load_grab_sequence(known.path)
+    seq["contact"]["object"] = np.zeros_like(seq["contact"]["object"])
+    seq["rhand"]["vtemp"] = "tools/subject_meshes/male/nobody_rhand.ply"  # a template that is not there
+    variant = write_grab_npz(tmp_path / "grab" / "s1" / "untouched.npz", seq)
+    out = tmp_path / "untouched.npz"
+    printed = run_cli("import-grab", variant, "--mano", known.mano, "--grab-root", known.root, "--out", out)
+    assert "touches the object in no frame" in printed and "MANO's mean shape" in printed
+    ann = tmp_path / "ann.json"
+    run_cli("annotate", "propose", "--source", out, "--target", "demo:human_alt@0.006", "--out", ann)
+    run_cli("retarget", "--clip", out, "--rig", "demo:human_alt@0.006", "--annotations", ann, "--out", tmp_path / "r",
+            "--frames", "0:60", "--workers", 2)
+    summary = json.loads((tmp_path / "r" / "result.json").read_text())["summary"]
+    assert summary["contact_frames"] == 0 and summary["contact_distance_median_mm"] is None
+    assert summary["marker_error_median_mm"] < 10
+
+
+def test_missing_object_mesh_names_grab_layout(imported, tmp_path):
+    known, _, _, _ = imported
+    with pytest.raises(InputError, match=r"tools/object_meshes/contact_meshes/<object>\.ply"):
+        from retarget_core.clip.grab import import_grab
+
+        import_grab(known.path, known.mano, grab_root=tmp_path)

@@ -206,4 +206,10 @@ def _cmd_import_grab(args) -> int:
         print(f"wrote {clip_path}: {clip.n_frames} frames at {clip.fps:g} fps, object {clip.object_name or '-'}, "
               f"{int((counts > 0).sum())} frames with {hand}-hand contacts ({clip.source})")
         print(f"wrote {rig_path}: its MANO source rig ({'subject template' if imported.template is not None else 'MANO mean template'})")
+        if imported.template is None:
+            print(f"  note: the subject's {hand}-hand template (GRAB's tools/subject_meshes/<gender>/<subject>_"
+                  f"{'rhand' if hand == 'right' else 'lhand'}.ply) was not found: the hand is MANO's mean shape, not "
+                  "the subject's; pass --grab-root or --vtemp")
+        if not counts.any():
+            print(f"  note: the {hand} hand touches the object in no frame: a retarget follows its markers only")
     return 0

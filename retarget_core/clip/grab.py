@@ -734,9 +734,15 @@ def import_grab_hand(sequence_path, mano_path, *, hand: str = "right", object_me
                          source=src, element="contact.object")
 
     # ---- meshes (resolved before the table arrays are required) ------------------------------
-    obj_path = _resolve(object_mesh, _get(seq, "object.object_mesh", src, required=False), grab_root, "object mesh", src, "object_mesh")
+    stored_obj = _text(_get(seq, "object.object_mesh", src, required=False))
+    obj_path = _resolve(object_mesh, stored_obj, grab_root, "object mesh", src, "object_mesh")
     if obj_path is None:
-        raise InputError("object mesh not found: pass --object-mesh (or --grab-root, the GRAB folder the stored path is relative to)",
+        names = f"the sequence names {stored_obj!r}" if stored_obj else "the sequence names no object mesh"
+        where = (f"it is not under the GRAB root {grab_root}" if grab_root is not None
+                 else "no --grab-root was given to look under")
+        raise InputError(f"object mesh not found: {names} and {where}; GRAB keeps object meshes in "
+                         "<GRAB root>/tools/object_meshes/contact_meshes/<object>.ply: pass --grab-root (the folder "
+                         "holding grab/ and tools/) or the mesh itself with --object-mesh",
                          source=src, element="object.object_mesh")
     table_path = _resolve(table_mesh, _get(seq, "table.table_mesh", src, required=False), grab_root, "table mesh", src, "table_mesh")
     if table_path is not None:
@@ -775,6 +781,7 @@ def import_grab_hand(sequence_path, mano_path, *, hand: str = "right", object_me
             raise InputError(f"hand template has {len(template)} vertices, expected {MANO_N_VERTICES} (a MANO mesh)",
                              source=str(vtemp_path), element="vtemp")
     else:
+        # a fit to another subject's hand: said in the clip's provenance, and by import-grab
         source += " (MANO mean template: subject vtemp not found)"
 
     if hand_pose is not None:

@@ -106,8 +106,13 @@ def mano_rig(model, v_template=None, *, name: str | None = None, rest: str = "me
     vertices, joints = template - wrist, joints - wrist
     weights = np.asarray(model.weights, dtype=np.float64)
     n_faces = len(model.faces)
-    vertices, faces, weights = cap_openings(vertices, np.asarray(model.faces, dtype=np.int64), weights,
-                                            what="the MANO model's surface")
+    try:
+        vertices, faces, weights = cap_openings(vertices, np.asarray(model.faces, dtype=np.int64), weights,
+                                                what="the MANO model's surface")
+    except InputError as err:
+        raise InputError(f"the MANO model's triangles do not form a hand surface with a wrist opening ({err}): is "
+                         "this MANO_RIGHT.pkl / MANO_LEFT.pkl as released?", source=getattr(model, "source", ""),
+                         element="f") from None
     k = max(1, int((weights > 1e-8).sum(axis=1).max()))
     order = np.argsort(-weights, axis=1, kind="stable")[:, :k]
     top = np.take_along_axis(weights, order, axis=1)
