@@ -54,10 +54,15 @@ def _labels(model, hand_vertices, object_vertices, object_poses) -> np.ndarray:
     labels = np.zeros((len(hand_vertices), len(object_vertices)), dtype=np.int32)
     for f, hand in enumerate(hand_vertices):
         world = object_vertices @ object_poses[f][:3, :3].T + object_poses[f][:3, 3]
-        d2, face, _ = igl.point_mesh_squared_distance(np.ascontiguousarray(world), np.ascontiguousarray(hand),
+        # only the object vertices inside the hand's box (grown by the threshold) can touch it
+        lo, hi = hand.min(axis=0) - CONTACT_THRESHOLD, hand.max(axis=0) + CONTACT_THRESHOLD
+        near = np.nonzero(np.all((world >= lo) & (world <= hi), axis=1))[0]
+        if len(near) == 0:
+            continue
+        d2, face, _ = igl.point_mesh_squared_distance(np.ascontiguousarray(world[near]), np.ascontiguousarray(hand),
                                                       np.ascontiguousarray(model.faces))
         hit = d2 <= CONTACT_THRESHOLD ** 2
-        labels[f, hit] = codes[owner[model.faces[np.asarray(face)[hit], 0]]]
+        labels[f, near[hit]] = codes[owner[model.faces[np.asarray(face)[hit], 0]]]
     return labels
 
 

@@ -23,8 +23,8 @@ HANDS = ("demo:human_alt@0.006", "demo:robot4@0.006")
 @pytest.fixture(scope="module")
 def grab_root(tmp_path_factory):
     root = tmp_path_factory.mktemp("GRAB")
-    known = [write_known_sequence(root, subject=subject, lead=lead, n_frames=60, name=f"bottle_{i}")
-             for i, (subject, lead) in enumerate([("s1", 40), ("s1", 20), ("s2", 50)])]
+    known = [write_known_sequence(root, subject=subject, lead=lead, n_frames=40, name=f"bottle_{i}")
+             for i, (subject, lead) in enumerate([("s1", 20), ("s1", 10), ("s2", 25)])]
     return root, known[0].mano
 
 
