@@ -241,7 +241,3 @@ def mano_params(rig: Rig, q) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         tr[t] = w0[:3, 3] - wrist
     finger = Rotation.from_matrix(joint_rotations(rig, q).reshape(-1, 3, 3)).as_rotvec().reshape(len(q), 45)
     return go, finger, tr
-
-
-def is_mano_rig(rig: Rig) -> bool:
-    return MANO_METADATA in rig.metadata
