@@ -64,6 +64,33 @@ def test_evaluate_writes_metrics_and_plots(outputs):
     assert coverage and all(0.0 <= v <= 1.0 for v in coverage)
     assert doc["summary"]["contact_frames"] > 0
     assert doc["hand_volume_m3"] > 0
+    assert doc["version"] == 2
+
+
+def test_intersection_figures_are_over_the_contact_frames(outputs):
+    out = outputs["splines"]
+    code, _, err = run_cli(["evaluate", str(out), "--no-render", "--stride", "3"])
+    assert code == 0, err
+    doc = json.loads((out / "metrics.json").read_text())
+    s, per = doc["summary"], doc["per_frame"]
+    assert s["intersection_over"] == "contact frames"
+    with np.load(out / "scene.npz") as z:
+        grasp = z["source_contact_count"] > 0
+    assert 0 < grasp.sum() < doc["frames"]  # the approach has no contacts
+    for key, values in (("hand_object_intersection_percent", per["intersection_percent"]["hand_object"]),
+                        ("penetration_mm", per["penetration_mm"])):
+        x = np.array([np.nan if v is None else v for v in values])
+        at = x[grasp & np.isfinite(x)]
+        assert len(at) > 3
+        assert s[f"{key}_median"] == pytest.approx(np.median(at), abs=1e-12)
+        assert s[f"{key}_max"] == pytest.approx(at.max(), abs=1e-12)
+        assert s[f"{key}_median"] <= s[f"{key}_p95"] <= s[f"{key}_max"]
+    depth = per["depth_mm"]
+    both = [max(a, b) for a, b in zip(depth["hand_into_object"], depth["object_into_hand"]) if a is not None]
+    assert both == [v for v in per["penetration_mm"] if v is not None]
+    x = np.array([np.nan if v is None else v for v in per["penetration_mm"]])
+    at = x[grasp & np.isfinite(x)]
+    assert s["penetration_over_1mm_share"] == pytest.approx(np.mean(at > 1.0))
 
 
 def test_contact_error_matches_the_retargets_own_figures_on_solved_frames(outputs):

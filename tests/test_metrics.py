@@ -1,20 +1,15 @@
-"""Evaluation metrics on constructed cases with known answers: intersection volumes of boxes,
-a capsule "finger" pushed into a slab "palm", the demo hand on a table and bent into itself;
-contact, coverage, marker, smoothness and limit metrics on small hand-computed arrays."""
+"""Evaluation metrics on small hand-computed arrays with known answers: contact, coverage,
+marker, smoothness and limit metrics (the intersection volumes: test_intersection.py)."""
 
 import json
 import math
 
 import numpy as np
 import pytest
-import trimesh
-from scipy.spatial.transform import Rotation
 
+from boxes import box_mesh
 from retarget_core.errors import InputError
-from retarget_core.mesh.geometry import SURFACE_TOLERANCE_M, box_signed_distance, signed_volume
 from retarget_core.evaluate import (
-    IntersectionResult,
-    clip_intersections,
     contact_coverage,
     contact_distance_per_frame,
     contact_distances,
@@ -22,252 +17,11 @@ from retarget_core.evaluate import (
     dof_derivatives,
     dof_limit_violations,
     dof_smoothness,
-    hand_object_intersection,
     marker_error_per_frame,
     median_per_frame_mm,
-    points_inside_mesh,
-    self_intersection,
     summarize_series,
-    table_intersection,
 )
 
-
-def box_mesh(extents, center=(0.0, 0.0, 0.0), subdivisions=5):
-    """A closed box (trimesh) split ``subdivisions`` times: a regular grid on each face with
-    spacing extent / 2**subdivisions."""
-    mesh = trimesh.creation.box(extents=extents)
-    for _ in range(subdivisions):
-        mesh = mesh.subdivide()
-    return np.asarray(mesh.vertices) + np.asarray(center), np.asarray(mesh.faces)
-
-
-def transform(points, pose):
-    return points @ pose[:3, :3].T + pose[:3, 3]
-
-
-# A 4 cm "hand" cube on a 1.25 mm grid (5 subdivisions) and a large flat "object" box whose
-# top is at z = 0.
-A = 0.04
-GRID = A / 2**5
-OBJECT_EXTENTS = (0.10, 0.10, 0.02)
-OBJECT_TOP = 0.0
-
-
-@pytest.fixture(scope="module")
-def hand_box():
-    return box_mesh((A, A, A))
-
-
-@pytest.fixture(scope="module")
-def object_box():
-    return box_mesh(OBJECT_EXTENTS, (0.0, 0.0, OBJECT_TOP - OBJECT_EXTENTS[2] / 2), subdivisions=3)
-
-
-@pytest.fixture(scope="module")
-def source_hand():
-    from retarget_core.clip.demo import source_rig
-
-    rig = source_rig()
-    return rig, rig.kinematics().skin(rig.rest_pose), np.asarray(rig.surface.faces)
-
-
-# ------------------------------------------------------------------------------------------
-# hand-object
-# ------------------------------------------------------------------------------------------
-def test_box_pushed_into_box_gives_the_overlap_volume(hand_box, object_box):
-    hv, hf = hand_box
-    ov, of = object_box
-    depth = 0.0055  # 4.4 grid steps: no hand vertex lies on the object's top
-    hv = hv + [0.0, 0.0, OBJECT_TOP - depth + A / 2]
-    r = hand_object_intersection(hv, hf, ov, of)
-    assert r.available and r.reason == ""
-    # Bottom face (33 x 33 grid) plus the 4 rows of side vertices below the object top
-    # (at 1.25, 2.5, 3.75, 5 mm above the bottom), 128 vertices around each row.
-    assert r.n_vertices == 33 * 33 + 4 * 128
-    assert r.n_clusters == 1
-    overlap = A * A * depth
-    assert r.volume_m3 == pytest.approx(overlap, rel=1e-6)
-    assert r.hand_volume_m3 == pytest.approx(A**3, rel=1e-9)
-    assert r.percent_of_hand == pytest.approx(100 * depth / A, rel=1e-6)  # 13.75 %
-    assert r.max_depth_m == pytest.approx(depth, abs=1e-9)
-    # The paper's literal hull (penetrating vertices only) stops at the last row: 5 mm.
-    vertices_only = hand_object_intersection(hv, hf, ov, of, include_crossings=False)
-    assert vertices_only.volume_m3 == pytest.approx(A * A * 4 * GRID, rel=1e-6)
-
-
-def test_box_over_the_object_edge_and_object_pose(hand_box, object_box):
-    """Only part of the hand box is over the object: the overlap is a smaller box bounded by
-    the object's top and its side wall; the object is given in its own frame with a pose."""
-    hv, hf = hand_box
-    ov, of = object_box
-    depth, over_x = 0.0043, 0.0137  # overlap 13.7 mm in x, 40 mm in y, 4.3 mm in z
-    hv = hv + [OBJECT_EXTENTS[0] / 2 - over_x + A / 2, 0.0, OBJECT_TOP - depth + A / 2]
-    pose = np.eye(4)
-    pose[:3, :3] = Rotation.from_rotvec([0.3, -0.5, 0.9]).as_matrix()
-    pose[:3, 3] = [0.2, -0.1, 0.7]
-    r = hand_object_intersection(transform(hv, pose), hf, ov, of, pose)
-    assert r.available
-    overlap = over_x * A * depth
-    # Measured 0.39 % below: where the object's top and side wall meet between mesh edges, the
-    # crossing points (on edges only) miss thin wedges. Every hull point lies in the convex
-    # overlap, so the hull can never exceed it.
-    assert overlap * 0.99 < r.volume_m3 <= overlap * (1 + 1e-9)
-    assert r.max_depth_m == pytest.approx(depth, abs=1e-7)
-    assert r.n_clusters == 1
-
-
-def test_separated_and_touching_boxes_give_zero(hand_box, object_box):
-    hv, hf = hand_box
-    ov, of = object_box
-    for gap in (0.001, 0.05):
-        r = hand_object_intersection(hv + [0, 0, OBJECT_TOP + gap + A / 2], hf, ov, of)
-        assert r.available and r.n_vertices == 0 and r.n_clusters == 0
-        assert r.volume_m3 == 0.0 and r.percent_of_hand == 0.0 and r.max_depth_m == 0.0
-
-
-def test_points_inside_a_sphere_by_ray_casting(rng):
-    sphere = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
-    points = rng.uniform(-1.3, 1.3, size=(4000, 3))
-    radius = np.linalg.norm(points, axis=1)
-    clear = (radius < 0.99) | (radius > 1.001)  # the facetted sphere lies between 0.997 and 1
-    inside = points_inside_mesh(points[clear], sphere.vertices, sphere.faces)
-    np.testing.assert_array_equal(inside, radius[clear] < 0.99)
-
-
-def test_two_separate_penetrations_are_two_clusters(hand_box, object_box):
-    ov, of = object_box
-    hv, hf = box_mesh((0.01, 0.01, 0.01), subdivisions=3)
-    two_v = np.vstack([hv + [-0.02, 0, 0.005 - 0.002], hv + [0.02, 0, 0.005 - 0.003]])
-    two_f = np.vstack([hf, hf + len(hv)])
-    r = hand_object_intersection(two_v, two_f, ov, of)
-    assert r.n_clusters == 2
-    np.testing.assert_allclose(r.cluster_volumes_m3, [1e-4 * 0.003, 1e-4 * 0.002], rtol=1e-6)
-    assert r.max_depth_m == pytest.approx(0.003, abs=1e-9)
-
-
-# ------------------------------------------------------------------------------------------
-# self
-# ------------------------------------------------------------------------------------------
-def test_finger_pushed_into_the_palm():
-    """A slab 'palm' and a capsule 'finger' (one mesh, two closed components) whose rounded
-    end is pushed ``depth`` into the palm: the overlap is a spherical cap."""
-    palm = trimesh.creation.box(extents=(0.08, 0.08, 0.02))
-    for _ in range(4):
-        palm = palm.subdivide()
-    radius, depth = 0.008, 0.004
-    finger = trimesh.creation.capsule(height=0.04, radius=radius, count=[48, 48])
-    fv = np.asarray(finger.vertices)
-    fv = fv + [0.0, 0.0, 0.01 - depth - fv[:, 2].min()]  # palm top at z = 0.01
-    v = np.vstack([palm.vertices, fv])
-    f = np.vstack([palm.faces, np.asarray(finger.faces) + len(palm.vertices)])
-    r = self_intersection(v, f)
-    cap = math.pi * depth**2 * (3 * radius - depth) / 3  # 3.35e-7 m^3
-    assert r.available
-    # Measured 3.338e-7: the facetted capsule is slightly inside the true sphere.
-    assert r.volume_m3 == pytest.approx(cap, rel=0.03)
-    # Two clusters: the finger's cap inside the palm and the palm's disc inside the finger
-    # (flat, so it adds no volume).
-    assert r.n_clusters == 2
-    assert r.max_depth_m == pytest.approx(depth, abs=2e-4)
-    assert r.percent_of_hand == pytest.approx(100 * r.volume_m3 / (signed_volume(v, f)), rel=1e-9)
-    # Separated by 1 mm: nothing.
-    v_apart = np.vstack([palm.vertices, fv + [0.0, 0.0, depth + 0.001]])
-    assert self_intersection(v_apart, f).n_vertices == 0
-
-
-@pytest.mark.parametrize(
-    "mesh",
-    [
-        trimesh.creation.icosphere(subdivisions=4, radius=0.03),
-        trimesh.creation.box(extents=(0.04, 0.03, 0.02)).subdivide().subdivide(),
-    ],
-    ids=["sphere", "box"],
-)
-def test_clean_closed_meshes_have_no_self_intersection(mesh):
-    r = self_intersection(mesh.vertices, mesh.faces)
-    assert r.available and r.n_vertices == 0 and r.volume_m3 == 0.0
-
-
-def test_demo_hand_rest_and_finger_bent_into_palm(source_hand):
-    rig, v_rest, faces = source_hand
-    rest = self_intersection(v_rest, faces)
-    assert rest.available
-    # Measured: 0.0013 % (one vertex where the generated surface folds over a 4 mm triangle
-    # fan, 4e-9 m^3); 0 at 2 mm resolution.
-    assert rest.percent_of_hand < 0.01
-    q = rig.rest_pose.copy()
-    for name in ("index1_flex", "index2_flex", "index3_flex"):
-        q[rig.dof_index(name)] = 2.6  # past the limits: the finger goes through the palm
-    bent = self_intersection(rig.kinematics().skin(q), faces)
-    assert bent.available
-    assert bent.percent_of_hand > 0.5  # measured 2.55 %
-    assert bent.n_vertices > 100 and bent.max_depth_m > 0.005
-
-
-# ------------------------------------------------------------------------------------------
-# table
-# ------------------------------------------------------------------------------------------
-TABLE_HALF = np.array([0.45, 0.35, 0.02])
-
-
-def table_pose_with_top_at(z, rotation=None):
-    pose = np.eye(4)
-    pose[:3, 3] = [0.0, 0.1, z - TABLE_HALF[2]]
-    if rotation is not None:
-        pose = rotation @ pose
-    return pose
-
-
-def test_box_resting_below_the_table_top(hand_box):
-    hv, hf = hand_box
-    depth = 0.0035
-    hv = hv + [0.0, 0.0, -depth + A / 2]  # bottom 3.5 mm below the top at z = 0
-    r = table_intersection(hv, hf, table_pose_with_top_at(0.0), TABLE_HALF)
-    assert r.volume_m3 == pytest.approx(A * A * depth, rel=1e-9)
-    assert r.percent_of_hand == pytest.approx(100 * depth / A, rel=1e-9)
-    assert r.max_depth_m == pytest.approx(depth, abs=1e-12)
-    assert r.n_vertices == 33 * 33 + 2 * 128 and r.n_clusters == 1
-    # The whole scene turned and moved: same answer.
-    turn = np.eye(4)
-    turn[:3, :3] = Rotation.from_rotvec([0.4, 1.1, -0.2]).as_matrix()
-    turn[:3, 3] = [1.0, 2.0, 3.0]
-    r2 = table_intersection(transform(hv, turn), hf, table_pose_with_top_at(0.0, turn), TABLE_HALF)
-    assert r2.volume_m3 == pytest.approx(r.volume_m3, rel=1e-9)
-    assert r2.n_vertices == r.n_vertices
-    # Resting exactly on the top, or above it: nothing.
-    for lift in (0.0, 0.002):
-        r0 = table_intersection(hv + [0, 0, depth + lift], hf, table_pose_with_top_at(0.0), TABLE_HALF)
-        assert r0.n_vertices == 0 and r0.volume_m3 == 0.0
-
-
-def test_demo_hand_on_the_table(source_hand):
-    _, v, faces = source_hand
-    depth = 0.003
-    low = v[:, 2].min()
-    r = table_intersection(v, faces, table_pose_with_top_at(low + depth), TABLE_HALF)
-    assert r.available and r.n_vertices > 0
-    assert r.max_depth_m == pytest.approx(depth, abs=1e-9)
-    assert 0 < r.percent_of_hand < 1  # measured 0.069 %
-    assert table_intersection(v, faces, table_pose_with_top_at(low), TABLE_HALF).n_vertices == 0
-    below = np.array([[0.0, 0.1, low - 0.001]])
-    assert box_signed_distance(below, table_pose_with_top_at(low), TABLE_HALF)[0] == pytest.approx(-0.001)
-
-
-@pytest.mark.parametrize("below_top, inside", [(0.0, False), (1e-12, False), (1e-6, True)],
-                         ids=["on the top", "1e-12 m in", "1e-6 m in"])
-def test_table_inside_only_deeper_than_the_stated_tolerance(below_top, inside):
-    """A vertex counts as in the table only deeper than SURFACE_TOLERANCE_M (1e-9 m): exactly on
-    the top or 1e-12 m into it is outside, 1e-6 m into it is inside; in a turned frame too."""
-    assert SURFACE_TOLERANCE_M == 1e-9
-    hv, hf = box_mesh((0.01, 0.01, 0.01), subdivisions=0)  # 8 corners, 4 of them at the bottom
-    hv = hv + [0.0, 0.1, 0.005 - below_top]  # bottom face below_top under the top at z = 0
-    turn = np.eye(4)
-    turn[:3, :3] = Rotation.from_rotvec([0.4, 1.1, -0.2]).as_matrix()
-    for frame in (np.eye(4), turn):
-        r = table_intersection(transform(hv, frame), hf, frame @ table_pose_with_top_at(0.0), TABLE_HALF)
-        assert r.available and r.n_vertices == (4 if inside else 0)
-        if inside:
-            assert r.max_depth_m == pytest.approx(below_top, rel=1e-3)
 
 
 @pytest.mark.parametrize("beyond, realised", [(0.0, True), (1e-12, True), (1e-6, False)],
@@ -275,58 +29,6 @@ def test_table_inside_only_deeper_than_the_stated_tolerance(below_top, inside):
 def test_contact_realised_up_to_the_stated_tolerance_beyond_the_threshold(beyond, realised):
     c = contact_coverage(np.array([0.005 + beyond, 0.001]), threshold_m=0.005)
     assert c.n_realised == (2 if realised else 1)
-
-
-# ------------------------------------------------------------------------------------------
-# unavailable
-# ------------------------------------------------------------------------------------------
-def test_open_hand_surface_makes_the_metrics_unavailable(hand_box, object_box):
-    hv, hf = hand_box
-    ov, of = object_box
-    open_faces = hf[1:]  # one triangle missing: three boundary edges
-    results = [
-        hand_object_intersection(hv, open_faces, ov, of),
-        self_intersection(hv, open_faces),
-        table_intersection(hv, open_faces, table_pose_with_top_at(0.0), TABLE_HALF),
-    ]
-    for r in results:
-        assert not r.available
-        assert "not a closed manifold" in r.reason and "boundary edges" in r.reason
-        assert math.isnan(r.volume_m3) and math.isnan(r.percent_of_hand)
-        d = r.to_dict()
-        assert d["percent_of_hand"] is None and d["available"] is False
-        json.dumps(d, allow_nan=False)
-    r = hand_object_intersection(hv, hf, ov, of[1:])
-    assert not r.available and "object surface is not closed" in r.reason
-    nan_hand = hv.copy()
-    nan_hand[0] = np.nan
-    assert "finite" in self_intersection(nan_hand, hf).reason
-    with pytest.raises(InputError):
-        table_intersection(hv, hf, np.eye(3), TABLE_HALF)
-
-
-def test_clip_intersections_and_their_series_summary(hand_box, object_box):
-    hv, hf = hand_box
-    ov, of = object_box
-    depths = [0.0055, -0.01, 0.0025]  # penetration per frame (negative: apart)
-    frames = np.stack([hv + [0, 0, OBJECT_TOP - d + A / 2] for d in depths])
-    poses = np.repeat(np.eye(4)[None], 3, axis=0)
-    out = clip_intersections(
-        frames, hf, object_vertices=ov, object_faces=of, object_poses=poses,
-        table_pose=table_pose_with_top_at(-0.002), table_half_extents=TABLE_HALF,
-    )
-    assert set(out) == {"hand_object", "self", "table"}
-    percent = [r.percent_of_hand for r in out["hand_object"]]
-    np.testing.assert_allclose(percent, [100 * max(d, 0) / A for d in depths], rtol=1e-6)
-    assert all(r.volume_m3 == 0 for r in out["self"])
-    np.testing.assert_allclose([r.max_depth_m for r in out["table"]], [0.0035, 0.0, 0.0005], atol=1e-12)
-    out["hand_object"].append(IntersectionResult(kind="hand_object", available=False, reason="hand surface is open"))
-    # the report's per-kind series: NaN where the metric was unavailable
-    series = summarize_series([r.percent_of_hand if r.available else np.nan for r in out["hand_object"]])
-    assert series["frames"] == 4 and series["finite_frames"] == 3
-    assert series["max"] == pytest.approx(13.75) and series["argmax_frame"] == 0
-    assert series["min"] == 0.0 and series["median"] == pytest.approx(100 * 0.0025 / A)
-    json.dumps(series, allow_nan=False)
 
 
 # ------------------------------------------------------------------------------------------

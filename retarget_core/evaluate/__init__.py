@@ -1,5 +1,5 @@
 """Evaluation of a retargeted motion: the paper's intersection metrics (hand-object, self and
-table, as convex-hull volumes of penetrating vertex clusters relative to the hand's volume)
+table, as exact mesh-boolean volumes relative to the hand's volume, and penetration depths)
 and per-frame / per-clip quality metrics (contact error and coverage, marker error,
 smoothness, DOF limit violations, series summaries)."""
 
@@ -8,7 +8,10 @@ from .intersection import (
     IntersectionResult,
     clip_intersections,
     hand_object_intersection,
-    points_inside_mesh,
+    PosedHand,
+    SceneObject,
+    component_parts,
+    frame_intersections,
     self_intersection,
     table_intersection,
 )
@@ -35,7 +38,10 @@ __all__ = [
     "IntersectionResult",
     "clip_intersections",
     "hand_object_intersection",
-    "points_inside_mesh",
+    "PosedHand",
+    "SceneObject",
+    "component_parts",
+    "frame_intersections",
     "self_intersection",
     "table_intersection",
     "DEFAULT_COVERAGE_THRESHOLD",

@@ -17,6 +17,7 @@ from ..files import atomic_path
 #: per-frame series compared (metrics.json per_frame keys, label)
 SERIES = (("contact_error_median_mm", "contact error (mm)"),
           ("hand_object", "hand-object intersection (%)"),
+          ("penetration_mm", "hand-object penetration (mm)"),
           ("self", "self intersection (%)"),
           ("marker_error_mm", "marker error (mm)"))
 
@@ -57,7 +58,8 @@ def compare_outputs(a_dir, b_dir, out, *, worst: int = 3, size: int = 300) -> di
     rows = ["| metric | " + " | ".join(names) + " |", "|---|---:|---:|"]
     for key in docs[0]["summary"]:
         vals = [d["summary"].get(key) for d in docs]
-        rows.append(f"| {key} | " + " | ".join("n/a" if v is None else f"{v:.4g}" for v in vals) + " |")
+        rows.append(f"| {key} | " + " | ".join("n/a" if v is None else v if isinstance(v, str) else f"{v:.4g}"
+                                              for v in vals) + " |")
     diff = {key: _series(docs[1], key) - _series(docs[0], key) for key, _ in SERIES}
     contact = np.abs(diff["contact_error_median_mm"])
     order = np.argsort(-np.nan_to_num(contact, nan=-1.0))

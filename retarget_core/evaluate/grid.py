@@ -2,7 +2,7 @@
 
 Each cell is a normal retarget output folder (``DIR/cells/<hand>/<clip>/<method>/``) evaluated
 in place (metrics.json, plots); a cell whose metrics.json exists is reused, so an interrupted
-grid resumes where it stopped. The table (grid.md, grid.csv) and a static HTML report
+grid resumes where it stopped (a cell measured by an older metrics version is evaluated again). The table (grid.md, grid.csv) and a static HTML report
 (index.html, linking each cell's plots) are rebuilt from the cells' metrics every run.
 """
 
@@ -25,9 +25,10 @@ METHODS = ("contacts", "fingertips", "keyvectors")
 COLUMNS = (
     ("contact error median (mm)", "contact_error_median_mm"),
     ("coverage within 5 mm", "contact_coverage_mean"),
-    ("hand-object intersection mean (%)", "hand_object_intersection_percent_mean"),
-    ("self intersection mean (%)", "self_intersection_percent_mean"),
-    ("table intersection mean (%)", "table_intersection_percent_mean"),
+    ("hand-object intersection median (%)", "hand_object_intersection_percent_median"),
+    ("penetration p95 (mm)", "penetration_mm_p95"),
+    ("self intersection median (%)", "self_intersection_percent_median"),
+    ("table intersection median (%)", "table_intersection_percent_median"),
     ("marker error median (mm)", "marker_error_median_mm"),
     ("jerk RMS median (deg/s^3)", "jerk_rms_median_deg_s3"),
     ("limit violations", "limit_violations"),
@@ -49,7 +50,7 @@ def run_grid(out, *, targets=None, clips=None, methods=METHODS, frames: int = 12
     from ..rig.io import resolve_rig
     from ..solve.config import load_config
     from ..transfer.propose import propose_annotations
-    from .report import write_evaluation
+    from .report import METRICS_VERSION, write_evaluation
 
     out = Path(out)
     targets = list(targets or DEMO_HANDS)
@@ -87,7 +88,12 @@ def run_grid(out, *, targets=None, clips=None, methods=METHODS, frames: int = 12
             for method in methods:
                 cell = out / "cells" / _cell_name(hand) / clip_name / method
                 if (cell / "metrics.json").is_file():
-                    continue
+                    if _metrics_version(cell) == METRICS_VERSION:
+                        continue
+                    if (cell / "result.json").is_file():  # measured by an older evaluation: measure again
+                        write_evaluation(cell, stride=stride)
+                        log(f"{hand} / {clip_name} / {method}: evaluated again (metrics version {METRICS_VERSION})")
+                        continue
                 if target is None:
                     target = demo_hand(hand) if hand in DEMO_HANDS else resolve_rig(hand, wrapper_resolution=0.004)
                     annotations = propose_annotations(source, target)
@@ -108,6 +114,13 @@ def run_grid(out, *, targets=None, clips=None, methods=METHODS, frames: int = 12
                     continue
                 log(f"{hand} / {clip_name} / {method}: {time.perf_counter() - t0:.0f} s")
     return write_grid_tables(out, targets, clips, methods)
+
+
+def _metrics_version(cell: Path):
+    try:
+        return json.loads((cell / "metrics.json").read_text(encoding="utf-8")).get("version")
+    except (OSError, ValueError):
+        return None
 
 
 def _cell_name(hand: str) -> str:
@@ -142,14 +155,15 @@ def _fmt(v) -> str:
 
 def comparison(rows, hand_filter=HUMAN_LIKE) -> dict:
     """Per method over the human-like targets: the median over cells of the contact error and
-    of the mean hand-object intersection, and ours / baseline ratios."""
+    of the hand-object intersection (each cell's median over its contact frames, exact volumes),
+    and ours / baseline ratios."""
     per = {}
     for r in rows:
         if r["summary"] is None or r["hand"] not in hand_filter:
             continue
         per.setdefault(r["method"], {"contact": [], "object": []})
         c = r["summary"].get("contact_error_median_mm")
-        o = r["summary"].get("hand_object_intersection_percent_mean")
+        o = r["summary"].get("hand_object_intersection_percent_median")
         if c is not None:
             per[r["method"]]["contact"].append(c)
         if o is not None:

@@ -2,8 +2,9 @@
 
 Reads what :meth:`~retarget_core.result.RetargetResult.write` left in DIR (result.json, the
 rig file it names, scene.npz), poses the target hand at the spline samples of every frame and
-measures: hand-object, self and table intersection (percent of the hand's volume), contact error
-and coverage, marker error (from result.json), smoothness and DOF limit violations.
+measures: hand-object, self and table intersection (exact volumes, percent of the hand's volume)
+and penetration depths (:mod:`.intersection`), contact error and coverage, marker error, smoothness
+and DOF limit violations. Intersection figures in the summary are over the contact frames.
 """
 
 from __future__ import annotations
@@ -18,8 +19,11 @@ from ..errors import InputError
 from ..files import atomic_path
 
 METRICS_FORMAT = "handretarget.metrics"
-METRICS_VERSION = 1
+#: 2: exact intersection volumes and depths, figures over the contact frames
+METRICS_VERSION = 2
 MM = 1000.0
+#: penetration depth series (mm): both directions of hand-object, self and table
+DEPTHS = ("hand_into_object", "object_into_hand", "self", "table")
 COVERAGE_MM = 5.0
 
 
@@ -108,8 +112,8 @@ def evaluate_output(folder, *, stride: int = 1, self_intersection_stride: int | 
     for metrics.json). ``stride``: measure intersections every stride-th frame (the others are
     None); self intersection, the costliest, every ``self_intersection_stride``-th (default:
     ``stride``). Contact, marker, smoothness and limit figures cover every frame."""
-    from ..mesh.geometry import signed_volume
-    from .intersection import hand_object_intersection, self_intersection, table_intersection
+    from ..rig.parts import rig_parts
+    from .intersection import PosedHand, SceneObject, frame_intersections
     from .metrics import (
         contact_distances,
         coverage_per_frame,
@@ -126,9 +130,14 @@ def evaluate_output(folder, *, stride: int = 1, self_intersection_stride: int | 
     stride = max(1, int(stride))
     self_stride = max(1, int(self_intersection_stride or stride))
     faces = rig.surface.faces
-    hand_volume = signed_volume(kin.skin(rig.rest_pose), faces)
+    try:
+        parts = rig_parts(rig)
+        hand_volume = PosedHand(parts, kin.skin(rig.rest_pose), faces).volume  # the denominator: the rest hand
+    except InputError:
+        parts, hand_volume = None, None  # the frames say why the surface cannot be measured
     kinds = ("hand_object", "self", "table")
     percent = {k: np.full(n, np.nan) for k in kinds}
+    depth_mm = {k: np.full(n, np.nan) for k in DEPTHS}
     reasons = {}
     contact_mm = np.full(n, np.nan)
     coverage = np.full(n, np.nan)
@@ -139,25 +148,40 @@ def evaluate_output(folder, *, stride: int = 1, self_intersection_stride: int | 
         # the source contacts the transfer dropped count as not realised
         coverage = coverage_per_frame(distances, contacts.frame_offsets, scene.source_contact_count, COVERAGE_MM / MM)
 
-    for f in range(n):
-        verts = None
-        if f % stride == 0:
-            verts = kin.skin(q[f])
-            found = {"hand_object": hand_object_intersection(verts, faces, scene.object_vertices, scene.object_faces,
-                                                             scene.object_poses[f], hand_volume_m3=hand_volume)}
-            if scene.table_pose is not None:
-                found["table"] = table_intersection(verts, faces, scene.table_pose, scene.table_half_extents,
-                                                    hand_volume_m3=hand_volume)
-            if f % self_stride == 0:
-                found["self"] = self_intersection(verts, faces, hand_volume_m3=hand_volume)
-            for kind, r in found.items():
-                if r.available:
-                    percent[kind][f] = r.percent_of_hand
-                else:
-                    reasons[kind] = r.reason
+    scene_object = SceneObject(scene.object_vertices, scene.object_faces)
+    for f in range(0, n, stride):
+        found = frame_intersections(
+            kin.skin(q[f]), faces, parts=parts, scene_object=scene_object, object_pose=scene.object_poses[f],
+            table_pose=scene.table_pose, table_half_extents=scene.table_half_extents, hand_volume_m3=hand_volume,
+            kinds=kinds if f % self_stride == 0 else ("hand_object", "table"))
+        for kind, r in found.items():
+            if not r.available:
+                reasons[kind] = r.reason
+                continue
+            percent[kind][f] = r.percent_of_hand
+            if kind == "hand_object":
+                depth_mm["hand_into_object"][f] = MM * r.hand_depth_m
+                depth_mm["object_into_hand"][f] = MM * r.other_depth_m
+            else:
+                depth_mm[kind][f] = MM * r.max_depth_m
+    penetration = np.fmax(depth_mm["hand_into_object"], depth_mm["object_into_hand"])
+    # The intersection figures are taken over the frames with contacts (the grasp), not the approach.
+    if scene.source_contact_count is not None and np.any(scene.source_contact_count > 0):
+        grasp, over = np.asarray(scene.source_contact_count) > 0, "contact frames"
+    elif np.isfinite(contact_mm).any():
+        grasp, over = np.isfinite(contact_mm), "contact frames"
+    else:
+        grasp, over = np.ones(n, bool), "all frames"
+
+    def at_grasp(values, prefix):
+        s_ = summarize_series(np.where(grasp, values, np.nan))
+        return {f"{prefix}_median": s_["median"], f"{prefix}_p95": s_["p95"], f"{prefix}_max": s_["max"]}
+
+    measured = grasp & np.isfinite(penetration)
     smooth = dof_smoothness(q, result.fps, list(result.dof_kinds))
     limits = dof_limit_violations(q, result.lower, result.upper)
-    per_frame = {"intersection_percent": {k: percent[k] for k in kinds}, "contact_error_median_mm": contact_mm,
+    per_frame = {"intersection_percent": {k: percent[k] for k in kinds}, "depth_mm": depth_mm,
+                 "penetration_mm": penetration, "contact_error_median_mm": contact_mm,
                  "contact_coverage": coverage, "marker_error_mm": result.marker_error_mm}
     contact_frames = np.isfinite(contact_mm)
     summary = {
@@ -165,8 +189,11 @@ def evaluate_output(folder, *, stride: int = 1, self_intersection_stride: int | 
         "contact_error_median_mm": float(np.median(contact_mm[contact_frames])) if contact_frames.any() else None,
         "contact_coverage_mean": float(np.mean(coverage[np.isfinite(coverage)])) if np.isfinite(coverage).any() else None,
         "marker_error_median_mm": summarize_series(result.marker_error_mm)["median"],
-        **{f"{k}_intersection_percent_mean": summarize_series(percent[k])["mean"] for k in kinds},
-        **{f"{k}_intersection_percent_max": summarize_series(percent[k])["max"] for k in kinds},
+        "intersection_over": over,
+        **{key: v for k in kinds for key, v in at_grasp(percent[k], f"{k}_intersection_percent").items()},
+        **at_grasp(penetration, "penetration_mm"),
+        **{key: v for k in DEPTHS for key, v in at_grasp(depth_mm[k], f"{k}_depth_mm").items()},
+        "penetration_over_1mm_share": float(np.mean(penetration[measured] > 1.0)) if measured.any() else None,
         "accel_rms_median_deg_s2": float(np.nanmedian(smooth.accel_rms[smooth.rotation]))
         if smooth.rotation.any() and np.isfinite(smooth.accel_rms[smooth.rotation]).any() else None,
         "jerk_rms_median_deg_s3": float(np.nanmedian(smooth.jerk_rms[smooth.rotation]))
@@ -181,7 +208,8 @@ def evaluate_output(folder, *, stride: int = 1, self_intersection_stride: int | 
         "series": {name: summarize_series(v) for name, v in
                    [("contact_error_median_mm", contact_mm), ("contact_coverage", coverage),
                     ("marker_error_mm", result.marker_error_mm)]
-                   + [(f"{k}_intersection_percent", percent[k]) for k in kinds]},
+                   + [(f"{k}_intersection_percent", percent[k]) for k in kinds]
+                   + [("penetration_mm", penetration)]},
         "smoothness": smooth.to_dict(result.dof_names),
         "limits": limits.to_dict(result.dof_names),
     }
@@ -190,7 +218,7 @@ def evaluate_output(folder, *, stride: int = 1, self_intersection_stride: int | 
 
 def write_plots(doc: dict, out_dir) -> dict:
     """intersection.png (percent of the hand's volume over time per kind, like the paper's
-    intersection figure) and contact_error.png (median contact error and coverage over time)
+    intersection figure, over the penetration depths in mm) and contact_error.png (median contact error and coverage over time)
     into ``out_dir``; returns {name: path}."""
     import matplotlib
 
@@ -205,18 +233,32 @@ def write_plots(doc: dict, out_dir) -> dict:
     def series(values):
         return np.array([np.nan if v is None else v for v in values], dtype=float)
 
-    fig, ax = plt.subplots(figsize=(8, 3.2), dpi=110)
+    fig, (ax, ax_d) = plt.subplots(2, 1, figsize=(8, 5.6), dpi=110, sharex=True)
     labels = {"hand_object": "hand-object", "self": "self", "table": "table"}
     for kind, values in doc["per_frame"]["intersection_percent"].items():
         y = series(values)
         keep = np.isfinite(y)
         if keep.any():
             ax.plot(t[keep], y[keep], label=labels.get(kind, kind), lw=1.4)
-    ax.set_xlabel("time (s)")
     ax.set_ylabel("intersection (% of hand volume)")
-    ax.set_title(f"{doc['rig']} ({doc['method']}): intersection")
+    ax.set_title(f"{doc['rig']} ({doc['method']}): intersection (exact volumes)")
     ax.legend(loc="upper right")
     ax.grid(alpha=0.3)
+    depth_labels = {"hand_into_object": "hand into object", "object_into_hand": "object into hand",
+                    "self": "self", "table": "hand into table"}
+    for kind, values in doc["per_frame"].get("depth_mm", {}).items():
+        y = series(values)
+        keep = np.isfinite(y)
+        if keep.any() and np.any(y[keep] > 0):
+            ax_d.plot(t[keep], y[keep], label=depth_labels.get(kind, kind), lw=1.2)
+    ax_d.axhline(1.0, color="0.5", lw=0.8, ls=":")
+    ax_d.axhline(2.0, color="0.5", lw=0.8, ls="--")
+    ax_d.set_xlabel("time (s)")
+    ax_d.set_ylabel("penetration depth (mm)")
+    handles, _ = ax_d.get_legend_handles_labels()
+    if handles:
+        ax_d.legend(loc="upper right")
+    ax_d.grid(alpha=0.3)
     fig.tight_layout()
     paths["intersection.png"] = out / "intersection.png"
     _save(fig, paths["intersection.png"])
