@@ -38,6 +38,7 @@ from .result import RetargetResult
 from .rig.anatomy import set_root_transform
 from .rig.hand_cut import surface_matches_hand
 from .rig.model import Rig
+from .solve.collision import collision_grids
 from .solve.config import MIN_CONTROL_POINTS, RetargetConfig
 from .solve.problem import Problem, method_objective, unused_settings
 from .solve.targets import contact_targets, marker_targets, scale_finger_markers
@@ -241,8 +242,10 @@ def build_problem(clip: Clip, pairs: ContactPairs, source: Rig, target: Rig, ann
     contacts = contact_targets(clip, pairs, transferred.contacts, keep_source_gap=config.contacts.keep_source_gap)
     if len(markers.pair_target) < 3:
         raise InputError("at least three marker pairs are needed to place the hand", element="markers")
+    # the collision terms' grids once here, not once per worker and objective
+    grids = collision_grids(target, clip.object_vertices, clip.object_faces, config)
     problem = Problem(target, config, markers, contacts, clip.object_poses, clip.table_pose,
-                      clip.table_half_extents, clip.object_vertices, clip.object_faces)
+                      clip.table_half_extents, clip.object_vertices, clip.object_faces, grids)
     method_objective(problem, "fingers")  # a baseline's missing markers are an input error, before any work
     return problem, transferred
 

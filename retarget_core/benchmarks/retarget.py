@@ -99,10 +99,12 @@ def gradient_speedup(clip, source, target, annotations, config: RetargetConfig, 
 
 
 def run_retarget_benchmark(n_frames: int = 1000, target: str = "human_alt", workers: int = 2,
-                           preset: str = "default", speedup_frames: int = 8) -> dict:
+                           preset: str = "default", speedup_frames: int = 8, collision_off: bool = True) -> dict:
     """Time every stage of :func:`retarget_core.pipeline.retarget` on a ~``n_frames`` demo clip
     onto the demo hand ``target``; peak resident memory of the process tree while it runs;
-    then the gradient speed-up on ``speedup_frames`` contact frames of the same clip."""
+    then the gradient speed-up on ``speedup_frames`` contact frames of the same clip. With
+    ``collision_off`` (and the collision terms on in the preset) the same run again without
+    them (lambda_p = lambda_sc = 0): what the terms cost."""
     from ..execute import Executor
     from ..inputs import RunInputs
     from ..pipeline import retarget
@@ -116,6 +118,12 @@ def run_retarget_benchmark(n_frames: int = 1000, target: str = "human_alt", work
     inputs = RunInputs.of(clip, source, target_rig, annotations, names={"target_rig": f"demo:{target}"})
     with PeakMemory() as memory:
         result = retarget(inputs, config, Executor(workers=int(workers)))
+    off = None
+    if collision_off and (config.weights.lambda_p > 0 or config.weights.lambda_sc > 0):
+        plain = RetargetConfig.preset(preset)
+        plain.weights.lambda_p = plain.weights.lambda_sc = 0.0
+        without = retarget(inputs, plain, Executor(workers=int(workers)))
+        off = {"timings": without.timings, "summary": without.summary, "counts": without.counts}
     speed = gradient_speedup(clip, source, target_rig, annotations, RetargetConfig.preset("paper"),
                              n_frames=speedup_frames)
     return {
@@ -123,5 +131,5 @@ def run_retarget_benchmark(n_frames: int = 1000, target: str = "human_alt", work
         "target_vertices": int(target_rig.surface.n_vertices), "workers": int(workers), "preset": preset,
         "setup_seconds": setup_seconds, "timings": result.timings, "peak_memory_bytes": memory.peak,
         "peak_memory_measured": memory.available, "summary": result.summary, "counts": result.counts,
-        "gradient": speed,
+        "gradient": speed, "collision_off": off,
     }

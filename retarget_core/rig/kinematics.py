@@ -58,6 +58,11 @@ class SurfaceBinding:
     def n_points(self) -> int:
         return self.y.shape[2]
 
+    def subset(self, ids: np.ndarray) -> "SurfaceBinding":
+        """The binding of points ``ids`` (K,) of this one."""
+        return SurfaceBinding(y=np.ascontiguousarray(self.y[:, :, ids]), z=np.ascontiguousarray(self.z[:, :, ids]),
+                              weight_sub=np.ascontiguousarray(self.weight_sub[:, ids]))
+
 
 class Kinematics:
     """Evaluator of one rig. Build once (``rig.kinematics()``), then call per frame."""
@@ -248,6 +253,11 @@ class Kinematics:
             axis=1,
         )
         force = moments[:, 3, :]
+        return self._wrench_gradient(pose, torque, force)
+
+    def _wrench_gradient(self, pose: Pose, torque: np.ndarray, force: np.ndarray) -> np.ndarray:
+        """(D,) gradient from per-joint torques and forces (J, 3) of cotangents on the points a
+        joint moves: each DOF sees the sums over its joint's subtree."""
         torque, force = self.subtree @ torque, self.subtree @ force
         a = self.dof_joint
         axis, origin = pose.dof_axis, pose.dof_origin
@@ -256,6 +266,31 @@ class Kinematics:
         if tr.any():
             grad[tr] = np.einsum("da,da->d", axis[tr], force[a[tr]])
         return grad
+
+    def rigid_points_vjp(self, pose: Pose | np.ndarray, joints: np.ndarray, points: np.ndarray,
+                         cotangent: np.ndarray) -> np.ndarray:
+        """(D,) gradient sum_k cotangent[k] . dx_k/dq for points (K, 3) world that move rigidly
+        with joint ``joints[k]`` (K,) at this pose: the velocity of a point fixed in a joint's
+        frame, which is what a query in that frame (a collision grid) differentiates through."""
+        pose = self._as_pose(pose)
+        c = np.asarray(cotangent, dtype=np.float64)
+        torque = np.zeros((self.n_joints, 3))
+        force = np.zeros((self.n_joints, 3))
+        np.add.at(torque, joints, np.cross(points, c))
+        np.add.at(force, joints, c)
+        return self._wrench_gradient(pose, torque, force)
+
+    def rigid_points_jacobian(self, pose: Pose | np.ndarray, joints: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """(D, 3, K) Jacobian of points (K, 3) world moving rigidly with ``joints`` (K,)."""
+        pose = self._as_pose(pose)
+        moves = self.subtree[self.dof_joint][:, joints]  # (D, K): DOF d moves joint joints[k]
+        axis, origin = pose.dof_axis, pose.dof_origin
+        lever = np.asarray(points, dtype=np.float64)[None] - origin[:, None, :]  # (D, K, 3)
+        vel = np.cross(axis[:, None, :], lever)
+        tr = ~self.is_rotation
+        if tr.any():
+            vel[tr] = axis[tr][:, None, :]
+        return (vel * moves[:, :, None]).transpose(0, 2, 1)
 
     def normals_vjp(self, pose: Pose | np.ndarray, binding: SurfaceBinding, cotangent: np.ndarray):
         """Unit normals (P, 3) and the (D,) gradient sum_p cotangent[p] . dnormal_p/dq, without

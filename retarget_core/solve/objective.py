@@ -1,7 +1,7 @@
 """The per-frame objective of the paper (section "Motion Retargeting"), with analytic gradients.
 
     E(q) = lambda_m G_M + lambda_c (lambda_cd G_CD + lambda_cn G_CN) + lambda_t G_T + lambda_j G_J
-           (+ lambda_p G_P, beyond the paper)
+           (+ lambda_p G_P + lambda_sc G_SC, beyond the paper)
 
 - G_M: markers, sum over marker pairs of w * rho(|target point - source marker|) (a marker of
   K pairs has w = 1/K so every marker counts once), rho(d) = d^2 (mm^2) or, with
@@ -11,7 +11,9 @@
 - G_CN: contact normals, sum of (1 + n_object . n_hand): zero when exactly opposite;
 - G_T: table, sum over hand sample points of max(0, -sdf_table) (mm), the box's analytic SDF;
 - G_J: prior, smooth L1 deviation (radians) of the non-root DOFs from a reference pose;
-- G_P: hand-object penetration, sum over hand sample points of max(0, -sdf_object) (mm);
+- G_P: hand-object penetration, sum over hand sample points of max(0, -sdf_object)^2 (mm^2),
+  and G_SC: self collision, the same between hand parts that do not share a surface edge
+  (both beyond the paper, :mod:`.collision`; weights lambda_p and lambda_sc);
 - G_R: root gauge, beyond the paper: a hand's root is three Euler angles, and near gimbal
   lock (the middle angle near +-90 deg) one combination of them barely turns the hand, so the
   data leave it free and the solves wander along it from frame to frame (measured: 20-180 deg
@@ -28,12 +30,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import igl
 import numpy as np
 
 from ..mesh.geometry import box_signed_distance, box_signed_distance_and_gradient
 from ..mesh.surface_points import SurfacePoints
 from ..rig.model import Rig
+from .collision import CollisionGrids, ObjectCollision, SelfCollision
 from .config import RetargetConfig
 
 MM = 1000.0
@@ -60,7 +62,9 @@ class FrameObjective:
     def __init__(self, rig: Rig, config: RetargetConfig, marker_faces: np.ndarray, marker_barycentric: np.ndarray,
                  pair_target: np.ndarray, pair_weight: np.ndarray, table_pose: np.ndarray | None = None,
                  table_half_extents: np.ndarray | None = None, object_vertices: np.ndarray | None = None,
-                 object_faces: np.ndarray | None = None, reference: np.ndarray | None = None):
+                 object_faces: np.ndarray | None = None, reference: np.ndarray | None = None,
+                 self_collision: bool = True, penetration_stride: int | None = None,
+                 collision: CollisionGrids | None = None):
         self.rig = rig
         self.kin = rig.kinematics()
         self.config = config
@@ -84,15 +88,17 @@ class FrameObjective:
         self.root_reference = rig.rest_pose.copy()
         self.gauge_direction = np.zeros(int(self.root_rotation.sum()))
         self.gauge_weight = 0.0
-        self.object_tree = None
-        if getattr(w, "lambda_p", 0.0) > 0 and object_vertices is not None:
-            self.object_vertices = np.ascontiguousarray(object_vertices, dtype=np.float64)
-            self.object_faces = np.ascontiguousarray(object_faces, dtype=np.int64)
-            tri = self.object_vertices[self.object_faces]
-            fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-            self.object_face_normals = fn / np.linalg.norm(fn, axis=1, keepdims=True)
-            self.object_tree = igl.AABB()
-            self.object_tree.init(self.object_vertices, self.object_faces)
+        self.object_collision = None
+        if w.lambda_p > 0 and object_vertices is not None:
+            self.object_collision = ObjectCollision(self.kin, object_vertices, object_faces,
+                                                    penetration_stride or config.sampling.penetration_sample_stride,
+                                                    grids=None if collision is None else collision.object)
+        # ``self_collision`` False: a stage that moves the root only (the hand's own shape is fixed)
+        self.self_collision = None
+        if w.lambda_sc > 0 and self_collision:
+            self.self_collision = SelfCollision(self.kin, config.sampling.self_collision_samples,
+                                                parts=None if collision is None else collision.parts,
+                                                grids=None if collision is None else collision.part_grids)
         self.frame: FrameData | None = None
         self.contact_binding = None
         self.evaluations = 0
@@ -119,26 +125,37 @@ class FrameObjective:
 
     def focus_samples(self, q: np.ndarray, margin: float = TABLE_MARGIN) -> None:
         """Let the table term see only the sample points within ``margin`` (m) of the table at
-        pose q (D,): most of a hand is far above the table, and skinning thousands of points per
-        evaluation for nothing dominates the cost. Exact as long as the far points stay out of
-        the table; :meth:`unseen_table_contact` checks that at the solution. A no-op when the
-        penetration term (which needs every sample) is on."""
-        if self.table is None or self.object_tree is not None:
+        pose q (D,), and the collision terms only the points near the object or near another
+        part: most of a hand is far from each, and skinning thousands of points per evaluation
+        for nothing dominates the cost. Exact as long as the far points stay out;
+        :meth:`unseen_collision` checks that at the solution."""
+        pose = self.kin.pose(q)
+        if self.object_collision is not None and self.frame is not None and self.frame.object_pose is not None:
+            self.object_collision.focus(pose, self.frame.object_pose)
+        if self.self_collision is not None:
+            self.self_collision.focus(pose)
+        if self.table is None:
             return
-        s = self.kin.points(q, self.all_samples)
+        s = self.kin.points(pose, self.all_samples)
         near = box_signed_distance(s, *self.table) < margin
         self.sample_binding = (self.kin.bind(SurfacePoints.from_vertices(self.sample_vertices[near], self.rig.surface.faces))
                                if near.any() else None)
 
-    def unseen_table_contact(self, q: np.ndarray) -> bool:
+    def unseen_collision(self, q: np.ndarray) -> bool:
         """True when, at q (D,), a sample point left out by :meth:`focus_samples` is inside the
-        table (the focused objective then differs from the whole one)."""
+        table, the object or another part (the focused objective then differs from the whole one)."""
+        pose = self.kin.pose(q)
+        if (self.object_collision is not None and self.frame is not None and self.frame.object_pose is not None
+                and self.object_collision.missed(pose, self.frame.object_pose)):
+            return True
+        if self.self_collision is not None and self.self_collision.missed(pose):
+            return True
         if self.table is None or self.sample_binding is self.all_samples:
             return False
-        inside_all = int((box_signed_distance(self.kin.points(q, self.all_samples), *self.table) < 0).sum())
+        inside_all = int((box_signed_distance(self.kin.points(pose, self.all_samples), *self.table) < 0).sum())
         if inside_all == 0 or self.sample_binding is None:
             return inside_all > 0
-        return inside_all > int((box_signed_distance(self.kin.points(q, self.sample_binding), *self.table) < 0).sum())
+        return inside_all > int((box_signed_distance(self.kin.points(pose, self.sample_binding), *self.table) < 0).sum())
 
     # ---- the terms -----------------------------------------------------------------------------
     def value_and_grad(self, q: np.ndarray, want_grad: bool = True):
@@ -173,20 +190,27 @@ class FrameObjective:
                     n = kin.normals(pose, self.contact_binding)
                 value += w.lambda_c * w.lambda_cn * float(np.sum(1.0 + np.einsum("ij,ij->i", n, data.object_normals)))
 
-        if self.sample_binding is not None and ((self.table is not None and w.lambda_t > 0)
-                                                or self.object_tree is not None):
+        if self.sample_binding is not None and self.table is not None and w.lambda_t > 0:
             s = kin.points(pose, self.sample_binding)
-            cot = np.zeros_like(s)
-            if self.table is not None and w.lambda_t > 0:
-                sdf, dsdf = box_signed_distance_and_gradient(s, *self.table)
-                inside = sdf < 0
-                if inside.any():
-                    value += w.lambda_t * float(-sdf[inside].sum() * MM)
+            sdf, dsdf = box_signed_distance_and_gradient(s, *self.table)
+            inside = sdf < 0
+            if inside.any():
+                value += w.lambda_t * float(-sdf[inside].sum() * MM)
+                if want_grad:
+                    cot = np.zeros_like(s)
                     cot[inside] -= (w.lambda_t * MM) * dsdf[inside]
-            if self.object_tree is not None and data.object_pose is not None:
-                value, cot = self._penetration(s, data.object_pose, value, cot)
-            if want_grad and np.any(cot):
-                grad += kin.points_vjp(pose, self.sample_binding, cot)
+                    grad += kin.points_vjp(pose, self.sample_binding, cot)
+
+        if self.object_collision is not None and data.object_pose is not None:
+            v, cot = self.object_collision.value_and_cot(pose, data.object_pose, w.lambda_p)
+            value += v
+            if want_grad and cot is not None:
+                grad += kin.points_vjp(pose, self.object_collision.binding, cot)
+        if self.self_collision is not None:
+            v, g = self.self_collision.value_and_grad(pose, w.lambda_sc, want_grad)
+            value += v
+            if g is not None:
+                grad += g
 
         if w.lambda_j > 0:
             d = (q - self.reference)[self.prior_mask]
@@ -203,9 +227,9 @@ class FrameObjective:
 
     def residuals(self, q: np.ndarray):
         """Least-squares form of the smooth terms: r (M,) and dr/dq (M, D) with sum(r**2) equal
-        to the markers, contacts (distance and normal) and prior part of E(q). The table and
-        penetration hinges are left out (they are zero almost everywhere and MMA, which sees
-        the whole objective, settles them). The stacked, checkable form; the warm start uses
+        to the markers, contacts (distance and normal), collision (G_P, G_SC) and prior part of
+        E(q). The table's linear hinge is left out (it is zero almost everywhere and MMA, which
+        sees the whole objective, settles it). The stacked, checkable form; the warm start uses
         :meth:`normal_equations` and :meth:`residual_cost`, built from the same blocks."""
         self.evaluations += 1
         blocks = self._residual_blocks(self.kin.pose(q), q)
@@ -276,6 +300,14 @@ class FrameObjective:
                 r = np.sqrt(np.maximum(k * (1.0 + c), 1e-12))
                 blocks.append((r, None if jn is None else
                                np.einsum("dap,pa->dp", jn.transpose(2, 1, 0), data.object_normals) * (k / (2 * r))))
+        if self.object_collision is not None and data.object_pose is not None:
+            block = self.object_collision.residuals(pose, data.object_pose, w.lambda_p, jacobian)
+            if block is not None:
+                blocks.append(block)
+        if self.self_collision is not None:
+            block = self.self_collision.residuals(pose, w.lambda_sc, jacobian)
+            if block is not None:
+                blocks.append(block)
         if w.lambda_j > 0:
             # signed r = sign(d) sqrt(lambda_j (smooth - eps)): smooth through d = 0
             d = (q - self.reference)[self.prior_mask]
@@ -304,19 +336,3 @@ class FrameObjective:
         delta = self.marker_delta
         root = np.sqrt(d2 + delta * delta)
         return 2 * delta * (root - delta), delta / root
-
-    def _penetration(self, points, pose, value, cot):
-        inv = np.linalg.inv(pose)
-        local = points @ inv[:3, :3].T + inv[:3, 3]
-        d2, face, closest = self.object_tree.squared_distance(self.object_vertices, self.object_faces,
-                                                             np.ascontiguousarray(local))
-        offset = local - closest
-        inside = np.einsum("ij,ij->i", offset, self.object_face_normals[np.asarray(face)]) < 0
-        if inside.any():
-            depth = np.sqrt(np.maximum(d2[inside], 0.0))
-            value += self.w.lambda_p * float(depth.sum() * MM)
-            # d depth / d point (local) = offset/|offset| (deeper is further from the surface);
-            # back to world through the pose's rotation
-            direction = offset[inside] / np.maximum(depth, 1e-12)[:, None]
-            cot[inside] += (self.w.lambda_p * MM) * direction @ inv[:3, :3]
-        return value, cot

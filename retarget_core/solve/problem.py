@@ -20,6 +20,7 @@ from ..mesh.surface_points import SurfacePoints
 from ..refine.branches import JUMP_MIN_SHIFT
 from ..rig.model import Rig
 from .baselines import FingertipObjective, KeyvectorObjective, keyvector_beta
+from .collision import CollisionGrids
 from .config import RetargetConfig
 from .frame_solver import solve_frame
 from .objective import FrameData, FrameObjective
@@ -59,7 +60,8 @@ def unused_settings(config: RetargetConfig) -> dict[str, dict]:
 class Problem:
     """Everything a worker needs to solve any frame of a run, as plain data. Arrays: the
     object's poses (T, 4, 4), vertices (Vo, 3) m and faces (Fo, 3); the table's pose (4, 4) and
-    half extents (3,) m, or None."""
+    half extents (3,) m, or None; ``collision``: the collision terms' grids, built once
+    (:func:`~retarget_core.solve.collision.collision_grids`; None: each objective builds its own)."""
 
     rig: Rig
     config: RetargetConfig
@@ -70,10 +72,15 @@ class Problem:
     table_half_extents: np.ndarray | None
     object_vertices: np.ndarray
     object_faces: np.ndarray
+    collision: CollisionGrids | None = None
 
     def frame_data(self, f: int) -> FrameData:
         points, obj_p, obj_n = self.contacts.frame(f)
         return FrameData(self.markers.source_positions[f], points, obj_p, obj_n, self.object_poses[f])
+
+
+#: The root pass samples the hand this many times more sparsely for the penetration term.
+ROOT_PENETRATION_STRIDE = 4
 
 
 def method_objective(problem: Problem, stage: str) -> FrameObjective:
@@ -82,8 +89,16 @@ def method_objective(problem: Problem, stage: str) -> FrameObjective:
     refinement) solve the method's. The one place the method is switched on."""
     m, cfg = problem.markers, problem.config
     common = dict(table_pose=problem.table_pose, table_half_extents=problem.table_half_extents,
-                  object_vertices=problem.object_vertices, object_faces=problem.object_faces)
-    if stage == "root" or cfg.method == "contacts":
+                  object_vertices=problem.object_vertices, object_faces=problem.object_faces,
+                  collision=problem.collision)
+    if stage == "root":
+        # the root moves the hand as a whole: its self collision cannot change, and a quarter of
+        # the penetration samples keep a rigid hand out of the object
+        return FrameObjective(problem.rig, cfg, m.target_faces, m.target_barycentric, m.pair_target,
+                              m.pair_weight, self_collision=False,
+                              penetration_stride=ROOT_PENETRATION_STRIDE * cfg.sampling.penetration_sample_stride,
+                              **common)
+    if cfg.method == "contacts":
         return FrameObjective(problem.rig, cfg, m.target_faces, m.target_barycentric, m.pair_target,
                               m.pair_weight, **common)
     if cfg.method == "fingertips":
@@ -115,9 +130,9 @@ def build_solver_state(problem: Problem, blas_threads: int = 1) -> dict:
     (54 x a few thousand at most) and a second thread per worker only fights the other workers
     for the cores (measured: whole bench 44 s with one thread per worker, 80 s with two)."""
     threadpool_limits(limits=blas_threads)
-    root = method_objective(problem, "root")
-    fingers = root if problem.config.method == "contacts" else method_objective(problem, "fingers")
-    return {"problem": problem, "root": root, "fingers": fingers}
+    # two objectives even for the paper's method: the root pass leaves out self collision and
+    # samples the penetration term more sparsely
+    return {"problem": problem, "root": method_objective(problem, "root"), "fingers": method_objective(problem, "fingers")}
 
 
 def solve_root_sequence(state: dict, frames, seed) -> list:
@@ -162,8 +177,8 @@ def solve_frames(state: dict, frames, seeds, stage: str, keyed: bool = False) ->
         sol = solve_frame(objective, seed, lower, upper, active,
                           warm_start_iterations=0 if root_only else cfg.warm_start_iterations, **settings)
         evaluations = sol.evaluations
-        if sol.ok and objective.unseen_table_contact(sol.q):
-            # a point that was far from the table at the seed ended inside it: polish with it
+        if sol.ok and objective.unseen_collision(sol.q):
+            # a point that was far from the table, object or another part at the seed ended inside: polish with it
             objective.focus_samples(sol.q)
             polished = solve_frame(objective, sol.q, lower, upper, active, **settings)
             evaluations += polished.evaluations
