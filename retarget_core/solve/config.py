@@ -454,8 +454,9 @@ class RetargetConfig:
         (9) the collision terms are on (lambda_p = 10, lambda_sc = 10, every 4th vertex for the
         penetration term, 32 sample vertices per hand part for self collision): robot4 on
         bottle_pick_place (120 frames, exact measures over the contact frames) went from 31.4 mm
-        p95 penetration and 1.65 % median self intersection to 1.65 mm and 0.002 %, contact
-        error 3.50 -> 3.58 mm; the prosthetic and human hands moved by under 0.05 mm.
+        p95 penetration and 1.65 % median self intersection to 1.74 mm and 0.0006 %, contact
+        error 3.50 -> 3.94 mm; prosthetic_1dof 1.60 -> 0.90 mm p95 (contact 2.13 -> 2.20),
+        human_alt 0.67 -> 0.58 (contact 1.61 -> 1.62).
 
     Top-level key ``method``: ``"contacts"`` (the paper) or a contact-free baseline
     (:data:`METHODS`); the settings a baseline does not use in its finger passes are listed in
