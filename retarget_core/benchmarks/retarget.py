@@ -15,7 +15,7 @@ from ..clip.demo import SOURCE_RESOLUTION, build_demo_timeline, clip_from_timeli
 from ..pairing.dense import pair_contacts
 from ..procmem import tree_memory_bytes
 from ..rig.demo_hands import demo_hand
-from ..solve.config import RetargetConfig
+from ..solve.config import COLLISION_WEIGHTS, RetargetConfig
 from ..solve.frame_solver import solve_frame
 from ..solve.problem import Problem, method_objective
 from ..solve.targets import contact_targets, marker_targets
@@ -99,12 +99,14 @@ def gradient_speedup(clip, source, target, annotations, config: RetargetConfig, 
 
 
 def run_retarget_benchmark(n_frames: int = 1000, target: str = "human_alt", workers: int = 2,
-                           preset: str = "default", speedup_frames: int = 8, collision_off: bool = True) -> dict:
+                           preset: str = "default", speedup_frames: int = 8, collision_off: bool = True,
+                           collision: bool = False) -> dict:
     """Time every stage of :func:`retarget_core.pipeline.retarget` on a ~``n_frames`` demo clip
     onto the demo hand ``target``; peak resident memory of the process tree while it runs;
     then the gradient speed-up on ``speedup_frames`` contact frames of the same clip. With
-    ``collision_off`` (and the collision terms on in the preset) the same run again without
-    them (lambda_p = lambda_sc = 0): what the terms cost."""
+    ``collision_off`` (and the collision terms on in the preset, or ``collision``: on with
+    :data:`~retarget_core.solve.config.COLLISION_WEIGHTS`) the same run again without them
+    (lambda_p = lambda_sc = 0): what the terms cost."""
     from ..execute import Executor
     from ..inputs import RunInputs
     from ..pipeline import retarget
@@ -115,6 +117,9 @@ def run_retarget_benchmark(n_frames: int = 1000, target: str = "human_alt", work
     annotations = propose_annotations(source, target_rig)
     setup_seconds = time.perf_counter() - t0
     config = RetargetConfig.preset(preset)
+    if collision:
+        for name, value in COLLISION_WEIGHTS.items():
+            setattr(config.weights, name, value)
     inputs = RunInputs.of(clip, source, target_rig, annotations, names={"target_rig": f"demo:{target}"})
     with PeakMemory() as memory:
         result = retarget(inputs, config, Executor(workers=int(workers)))

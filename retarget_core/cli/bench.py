@@ -45,6 +45,8 @@ def _bench_retarget_arguments(p) -> None:
     p.add_argument("--preset", default="default")
     p.add_argument("--speedup-frames", type=int, default=4, help="frames timed with both gradient modes")
     p.add_argument("--json", action="store_true")
+    p.add_argument("--collision", action="store_true",
+                   help="the collision terms on (lambda_p = lambda_sc = 10), then the same run without them")
     p.add_argument("--no-collision-off", dest="collision_off", action="store_false",
                    help="skip the second run without the collision terms")
 
@@ -53,7 +55,8 @@ def _cmd_bench_retarget(args) -> int:
     from ..benchmarks.retarget import run_retarget_benchmark
 
     fig = run_retarget_benchmark(n_frames=args.frames, target=args.target, workers=args.workers, preset=args.preset,
-                                 speedup_frames=args.speedup_frames, collision_off=args.collision_off)
+                                 speedup_frames=args.speedup_frames, collision_off=args.collision_off,
+                                 collision=args.collision)
     if args.json:
         print(json.dumps(fig, indent=2, default=str))
         return 0
