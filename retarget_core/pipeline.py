@@ -28,7 +28,7 @@ from .errors import InputError
 from .evaluate.metrics import contact_distance_per_frame, marker_error_per_frame
 from .execute import Executor, FrameRunner
 from .fit.polish import polish_curves
-from .fit.splines import evaluate_curves, fit_trajectory
+from .fit.splines import coupled_curves, evaluate_curves, fit_trajectory
 from .inputs import RunInputs, frame_range
 from .mesh.surface_points import SurfacePoints
 from .pairing.dense import ContactPairs, pair_contacts
@@ -119,7 +119,10 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
                 q, reports["refine"] = refinement(runner, q, target, clip.fps, config)
                 unresolved = reports["refine"].unresolved
                 timings["refinement"] = time.perf_counter() - t0
-            # 8. one cubic B-spline per DOF, polished on the frames' objective
+            # 8. one cubic B-spline per DOF, polished on the frames' objective; coupled DOFs
+            # (mimic joints) follow their leaders exactly, as every solve kept them
+            coupling = target.coupling()
+            q = coupling.apply(q)  # the filter's frames that were not re-solved
             times = np.arange(clip.n_frames) / clip.fps
             curves, fit_report = None, None
             if config.passes.fit:
@@ -129,13 +132,14 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
                 n_control = max(MIN_CONTROL_POINTS, min(n_control, usable))
                 fit_report = {}
                 curves = fit_trajectory(times, q, n_control, mask=~unresolved, optimize_knots=config.fit.optimize_knots,
-                                        limits=(target.lower, target.upper) if config.fit.respect_limits else None,
-                                        report=fit_report)
+                                        limits=coupling.bounds(target.lower, target.upper)
+                                        if config.fit.respect_limits else None, report=fit_report)
+                curves = coupled_curves(curves, coupling)  # a follower's curve is its leader's, mapped
                 timings["fit"] = time.perf_counter() - t0
                 executor.report("spline fit", 1, 1)
                 if config.fit.polish_iterations > 0 and config.method == "contacts":
                     curves, polish = polish_curves(runner, curves, times, target.lower, target.upper,
-                                                   iterations=config.fit.polish_iterations)
+                                                   iterations=config.fit.polish_iterations, coupling=coupling)
                     fit_report["polish"] = polish.to_dict()
                     timings["curve polish"] = polish.seconds
     finally:

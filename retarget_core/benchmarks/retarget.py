@@ -87,7 +87,7 @@ def gradient_speedup(clip, source, target, annotations, config: RetargetConfig, 
             sol = solve_frame(objective, seed, target.lower, target.upper, np.ones(target.n_dofs, bool),
                               maxeval=config.solver.maxeval, xtol_rel=config.solver.xtol_rel, gradient=mode,
                               fd_step=config.solver.fd_step, kinds=kinds, root_mask=root,
-                              algorithm=config.solver.algorithm)
+                              algorithm=config.solver.algorithm, coupling=target.coupling())
             seconds.append(time.perf_counter() - t0)
             values.append(sol.value)
             evals.append(sol.evaluations)

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.linalg import solveh_banded
 
-from .splines import BSplineCurve, evaluate_curves
+from .splines import BSplineCurve, coupled_curves, evaluate_curves
 
 
 @dataclass
@@ -79,18 +79,38 @@ class CoefficientLayout:
 
 
 def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-                  *, iterations: int = 4) -> tuple[list[BSplineCurve], PolishReport]:
+                  *, iterations: int = 4, coupling=None) -> tuple[list[BSplineCurve], PolishReport]:
     """``curves`` (one per DOF) with coefficients polished on the frames' objective at
     ``times`` (T,) (see the module docstring); ``runner`` a FrameRunner of the run's problem.
-    ``lower``, ``upper`` (D,) the DOF limits."""
+    ``lower``, ``upper`` (D,) the DOF limits. ``coupling``: the rig's
+    :class:`~retarget_core.rig.coupling.DofCoupling`, kept exactly: the frames' systems are
+    carried to the free DOFs and each follower's curve is its leader's, mapped
+    (:func:`~retarget_core.fit.splines.coupled_curves`)."""
     t0 = time.perf_counter()
     report = PolishReport()
     times = np.asarray(times, dtype=np.float64)
     frames = np.arange(len(times))
+    couple = coupling is not None and not coupling.empty
+    if couple:
+        lower, upper = coupling.bounds(lower, upper)
+        curves = coupled_curves(curves, coupling)
+        lift = coupling.lift()
     lay = CoefficientLayout(curves, times)
     offsets, order, n, band = lay.offsets, lay.order, lay.n, lay.band
     columns, lifts = lay.columns, lay.lifts
     coeffs = np.concatenate([c.coeffs for c in curves])
+
+    def coupled(c):
+        # the followers' coefficients from their leaders' (the step leaves them where they were)
+        if not couple:
+            return c
+        return np.concatenate([k.coeffs for k in coupled_curves(_with(curves, c, offsets), coupling)])
+
+    def frame_systems(c):
+        systems = runner.systems(frames, poses(c))
+        if not couple:
+            return systems
+        return [(f, v, cost, lift.T @ g, lift.T @ h @ lift) for f, v, cost, g, h in systems]
     lo = np.concatenate([np.full(b.shape[1], lower[d]) for d, b in enumerate(lay.bases)])
     hi = np.concatenate([np.full(b.shape[1], upper[d]) for d, b in enumerate(lay.bases)])
 
@@ -101,7 +121,7 @@ def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: 
         return float(sum(v for _, v in runner.values(frames, poses(c))))
 
     mu = 1e-3
-    systems = runner.systems(frames, poses(coeffs))
+    systems = frame_systems(coeffs)
     current = float(sum(s[1] for s in systems))
     report.objective_before = current
     for it in range(max(0, int(iterations))):
@@ -137,6 +157,7 @@ def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: 
             trial_p = np.clip(x + step, lo_p, hi_p)
             trial = np.empty(n)
             trial[order] = trial_p
+            trial = coupled(trial)
             value = total(trial)
             report.history.append(value)
             if np.isfinite(value) and value < current:
@@ -147,7 +168,7 @@ def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: 
             mu *= 4.0
         if not improved:
             break
-        systems = runner.systems(frames, poses(coeffs))
+        systems = frame_systems(coeffs)
     runner.executor.report("curve polish", int(iterations), int(iterations))
     report.objective_after = current
     report.seconds = time.perf_counter() - t0

@@ -15,7 +15,7 @@ derivatives), matching the extrapolation written into USD splines.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.interpolate import BSpline, PPoly, make_lsq_spline
@@ -389,6 +389,20 @@ def _optimize_knots(x, y, knots, best, start, end, degree, min_gap, max_iter):
     except (ValueError, FloatingPointError, np.linalg.LinAlgError) as err:
         error = f"knot optimisation failed ({type(err).__name__}: {err}); kept the best knots seen"
     return state["knots"], state["fit"], error
+
+
+def coupled_curves(curves: list[BSplineCurve], coupling) -> list[BSplineCurve]:
+    """``curves`` (one per DOF) with each follower of ``coupling`` (a
+    :class:`~retarget_core.rig.coupling.DofCoupling`) replaced by its leader's curve mapped
+    affinely: knots shared, coefficients m c + o, so the follower's curve is m q_leader(t) + o
+    at every t (B-spline bases sum to one), not only at the frames."""
+    if coupling is None or coupling.empty:
+        return list(curves)
+    out = list(curves)
+    for i in coupling.followers:
+        lead = curves[coupling.leader[i]]
+        out[i] = replace(lead, coeffs=coupling.multiplier[i] * lead.coeffs + coupling.offset[i])
+    return out
 
 
 def fit_trajectory(times, q, n_control: int, mask=None, optimize_knots: bool = True, limits=None,

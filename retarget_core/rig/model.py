@@ -293,6 +293,16 @@ class Rig:
             self.__dict__["_kinematics"] = cached
         return cached
 
+    def coupling(self):
+        """The (cached) linear couplings between DOFs; see :class:`~retarget_core.rig.coupling.DofCoupling`."""
+        from .coupling import DofCoupling
+
+        cached = self.__dict__.get("_coupling")
+        if cached is None:
+            cached = DofCoupling.of_rig(self)
+            self.__dict__["_coupling"] = cached
+        return cached
+
     def random_pose(self, rng: np.random.Generator, *, root_scale: float = 1.0) -> np.ndarray:
         """(D,) a pose drawn uniformly within the limits; root DOFs (joint 0) are drawn within
         +-root_scale (m or rad) of rest, clipped to their limits, so the hand stays near the origin."""
@@ -361,6 +371,15 @@ class Rig:
                     source=source,
                     element=el,
                 )
+        from .coupling import DofCoupling
+
+        coupling = DofCoupling.of_rig(self)
+        rest = self.rest_pose
+        for i in coupling.followers:
+            want = coupling.multiplier[i] * rest[coupling.leader[i]] + coupling.offset[i]
+            if abs(rest[i] - want) > 1e-6:
+                raise InputError(f"rest value {rest[i]:.6g} breaks its coupling to {self.dofs[coupling.leader[i]].name!r} "
+                                 f"(which gives {want:.6g})", source=source, element=f"DOF {self.dofs[i].name!r}")
         self.surface.validate(self.n_joints, source=source, element="surface")
         if self.visual is not None:
             self.visual.validate(self.n_joints, source=source, element="visual")

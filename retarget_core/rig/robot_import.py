@@ -23,11 +23,16 @@ import os
 import xml.etree.ElementTree as ET
 from pathlib import Path, PurePosixPath
 
+import logging
+
 import numpy as np
 
 from ..errors import InputError
+from .coupling import MIN_MULTIPLIER, Coupling, couple_rest, tendon_coupling
 from .model import Dof, Joint, Rig, SkinnedMesh, free_root
 from .wrapper import build_wrapper
+
+logger = logging.getLogger(__name__)
 
 WRAPPER_OFFSET = 0.0015
 
@@ -349,8 +354,10 @@ def load_urdf(path, *, wrapper_resolution: float = 0.002, confine_to=None) -> Ri
       named after the URDF joint: ``revolute`` -> "rotate" about the (unit-normalised) joint
       axis, ``prismatic`` -> "translate" along it, ``continuous`` -> "rotate" with limits
       [-pi, pi] (continuous joints have none in the file). Revolute/prismatic joints without
-      ``<limit lower upper>`` raise InputError naming the joint. ``mimic`` tags are ignored
-      (the joint becomes an independent DOF); floating/planar joints raise InputError.
+      ``<limit lower upper>`` raise InputError naming the joint. A ``<mimic joint multiplier
+      offset>`` joint becomes a coupled DOF (``metadata["couplings"]``, see
+      :mod:`retarget_core.rig.coupling`): the solve moves its leader and keeps
+      q = multiplier * q_leader + offset exactly. Floating/planar joints raise InputError.
     - **Fixed joints are merged** into the nearest non-fixed ancestor: their link's geometry is
       carried by that ancestor's rig joint. ``metadata["link_frames"]`` maps every URDF link
       name to ``[rig joint name, 4x4 offset as nested lists]`` so that its world frame is
@@ -454,6 +461,8 @@ def load_urdf(path, *, wrapper_resolution: float = 0.002, confine_to=None) -> Ri
                 )
             stack.append(j.child)
     # Joints were appended depth-first, so parents come first; DOFs follow joint order.
+    couplings = _urdf_mimics(robot.joints, {d.name for d in dofs}, source)
+    couple_rest(dofs, couplings)
 
     zero, _ = _rest_frames(joints, dofs)
     urdf_dir = path.parent
@@ -481,8 +490,97 @@ def load_urdf(path, *, wrapper_resolution: float = 0.002, confine_to=None) -> Ri
         "link_frames": {name: [joints[o].name, off.tolist()] for name, (o, off) in link_frame.items()},
         "wrapper_resolution": wrapper_resolution,
         "wrapper_offset": WRAPPER_OFFSET,
+        "couplings": [c.to_dict() for c in couplings],
+        "joint_order": [j.name for j in robot.joints if j.type != "fixed"],
     }
     return _finish(robot.name or path.stem, joints, dofs, pieces, source, metadata, wrapper_resolution)
+
+
+def _urdf_mimics(urdf_joints, dof_names: set, source) -> list[Coupling]:
+    """The ``<mimic>`` tags of the moving joints as couplings (multiplier 1 and offset 0 when
+    not written, as URDF specifies)."""
+    out = []
+    for j in urdf_joints:
+        mimic = getattr(j, "mimic", None)
+        if mimic is None or j.type == "fixed":
+            continue
+        el = f"joint {j.name!r} <mimic>"
+        if mimic.joint not in dof_names:
+            raise InputError(f"mimics {mimic.joint!r}, which is not a moving joint of the URDF", source=source,
+                             element=el)
+        m = 1.0 if mimic.multiplier is None else float(mimic.multiplier)
+        o = 0.0 if mimic.offset is None else float(mimic.offset)
+        if not (np.isfinite(m) and np.isfinite(o)) or abs(m) < MIN_MULTIPLIER:
+            raise InputError(f"multiplier {m!r} and offset {o!r} must be finite, the multiplier not zero",
+                             source=source, element=el)
+        out.append(Coupling(j.name, mimic.joint, m, o, "urdf mimic"))
+    return out
+
+
+def _mjcf_constraints(model, mujoco, dof_of_joint: dict[int, str], dofs, source) -> tuple[list, list]:
+    """(couplings, not honoured) from the model's joint equalities and fixed tendons among the
+    hand's joints. A linear ``<equality><joint>`` (MuJoCo: q1 - q1_ref = c0 + c1 (q2 - q2_ref))
+    is a coupling; a limited fixed tendon over one joint narrows that joint's limits (in place
+    on ``dofs``), over two joints with a narrow band it is a coupling
+    (:func:`~retarget_core.rig.coupling.tendon_coupling`); anything else (polynomial
+    equalities, wide or longer tendons) is listed as not honoured, with the reason."""
+    couplings, unhonoured = [], []
+    by_name = {d.name: d for d in dofs}
+    ranges = {d.name: (d.lower, d.upper) for d in dofs}
+    qpos0 = model.qpos0
+    for e in range(model.neq):
+        if int(model.eq_type[e]) != int(mujoco.mjtEq.mjEQ_JOINT):
+            continue
+        j1, j2 = int(model.eq_obj1id[e]), int(model.eq_obj2id[e])
+        if j1 not in dof_of_joint or (j2 >= 0 and j2 not in dof_of_joint):
+            continue  # not between two of the hand's hinge / slide joints
+        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_EQUALITY, e) or f"equality{e}"
+        poly = np.asarray(model.eq_data[e][:5], float)
+        if j2 < 0 or np.any(np.abs(poly[2:]) > 0) or abs(poly[1]) < MIN_MULTIPLIER:
+            unhonoured.append({"constraint": f"mjcf equality {name!r}", "why": (
+                "a polynomial or constant joint equality is not a linear coupling; the joints move freely "
+                "within their limits")})
+            continue
+        r1, r2 = qpos0[model.jnt_qposadr[j1]], qpos0[model.jnt_qposadr[j2]]
+        couplings.append(Coupling(dof_of_joint[j1], dof_of_joint[j2], float(poly[1]),
+                                  float(r1 + poly[0] - poly[1] * r2), f"mjcf equality {name!r}"))
+    order = {d.name: i for i, d in enumerate(dofs)}
+    for t in range(model.ntendon):
+        if not model.tendon_limited[t]:
+            continue
+        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_TENDON, t) or f"tendon{t}"
+        adr, num = model.tendon_adr[t], model.tendon_num[t]
+        types = [int(model.wrap_type[w]) for w in range(adr, adr + num)]
+        if any(k != int(mujoco.mjtWrap.mjWRAP_JOINT) for k in types):
+            continue  # a spatial tendon: its length is no linear function of the joints
+        members = [(int(model.wrap_objid[w]), float(model.wrap_prm[w])) for w in range(adr, adr + num)]
+        if not all(j in dof_of_joint for j, _ in members):
+            continue
+        joints = sorted(((dof_of_joint[j], c) for j, c in members), key=lambda m: order[m[0]])
+        lo, hi = (float(x) for x in model.tendon_range[t])
+        if len(joints) == 1:
+            (dof, c), = joints
+            a, b = sorted((lo / c, hi / c))
+            d = by_name[dof]
+            if a > d.lower or b < d.upper:
+                if max(a, d.lower) >= min(b, d.upper):
+                    raise InputError(f"tendon {name!r} leaves joint {dof!r} no range", source=source)
+                d.lower, d.upper = max(a, d.lower), min(b, d.upper)
+                d.rest = float(np.clip(d.rest, d.lower, d.upper))
+            continue
+        # a limit the joints' own limits never let the tendon reach is no constraint at all
+        reach = [sorted((c * ranges[n][0], c * ranges[n][1])) for n, c in joints]
+        if sum(r[0] for r in reach) >= lo and sum(r[1] for r in reach) <= hi:
+            continue
+        coupling = tendon_coupling(name, joints, (lo, hi), ranges)
+        if coupling is not None and coupling.dof not in {c.dof for c in couplings}:
+            couplings.append(coupling)
+        else:
+            unhonoured.append({"constraint": f"mjcf tendon {name!r}", "why": (
+                f"a limit on {' + '.join(f'{c:g} {n}' for n, c in joints)} in [{lo:g}, {hi:g}] is not one of "
+                "the constraints the solve keeps (a coupling of two joints with a narrow band, or one joint's "
+                "limits)")})
+    return couplings, unhonoured
 
 
 # ---- MJCF ----------------------------------------------------------------------------------
@@ -578,6 +676,11 @@ def load_mjcf(path, *, root_body: str | None = None, wrapper_resolution: float =
       subtree has pure visual geoms (contype = conaffinity = 0) only those are used (they are the
       robot's looks; the colliding geoms duplicate them coarsely); otherwise all geoms. The same
       geometry is ``Rig.visual`` and the wrapper's input.
+    - Constraints between joints: a linear ``<equality><joint>`` and a limited fixed tendon over
+      two joints with a narrow band become couplings the solve keeps exactly
+      (``metadata["couplings"]``); a fixed tendon over one joint narrows its limits; any other
+      constraint the joints' limits let bind is listed in ``metadata["unhonoured_constraints"]``
+      and logged as a warning.
     - ``confine_to`` (a folder holding the MJCF, e.g. an unpacked upload): every file the model
       names (includes, meshes, textures, height fields, skins, and the asset folders
       ``meshdir``/``texturedir``/``assetdir``) must lie inside it; anything else raises
@@ -650,6 +753,7 @@ def load_mjcf(path, *, root_body: str | None = None, wrapper_resolution: float =
 
     root_joint, dofs = free_root()
     joints = [root_joint]
+    dof_of_joint = {}  # MuJoCo hinge / slide joint id -> DOF name
     owner = {}  # body -> rig joint carrying it
     body_offset = {}  # body -> world frame at q = 0 (4x4)
     world0 = [np.eye(4)]  # rig joint world frames at q = 0
@@ -714,8 +818,14 @@ def load_mjcf(path, *, root_body: str | None = None, wrapper_resolution: float =
                 axis = _unit_axis(model.jnt_axis[j], source=source, element=el)
                 kind = "rotate" if jtype == mujoco.mjtJoint.mjJNT_HINGE else "translate"
                 dofs.append(Dof(jname, index, kind, axis, lo, hi, float(np.clip(0.0, lo, hi))))
+                dof_of_joint[j] = jname
             parent_joint = index
         owner[b] = parent_joint
+
+    couplings, unhonoured = _mjcf_constraints(model, mujoco, dof_of_joint, dofs, source)
+    couple_rest(dofs, couplings)
+    for u in unhonoured:
+        logger.warning("%s: %s is not honoured: %s", source, u["constraint"], u["why"])
 
     # Geometry at q = 0.
     geoms = [g for g in range(model.ngeom) if model.geom_bodyid[g] in owner]
@@ -762,6 +872,11 @@ def load_mjcf(path, *, root_body: str | None = None, wrapper_resolution: float =
             for b, o in owner.items()
         },
         "geometry": "visual geoms (contype=conaffinity=0)" if visual_only else "all geoms",
+        "couplings": [c.to_dict() for c in couplings],
+        "unhonoured_constraints": unhonoured,
+        "joint_order": [joint_name(j) for j in range(model.njnt) if j in dof_of_joint
+                        or (int(model.jnt_type[j]) == int(mujoco.mjtJoint.mjJNT_BALL)
+                            and model.jnt_bodyid[j] in owner)],
         "wrapper_resolution": wrapper_resolution,
         "wrapper_offset": WRAPPER_OFFSET,
     }

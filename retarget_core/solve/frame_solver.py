@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import nlopt
 import numpy as np
 
+from ..rig.coupling import DofCoupling
 from .objective import FrameObjective
 
 ROOT_TRANSLATION_WINDOW = 0.05  # metres around the seed
@@ -40,18 +41,23 @@ class FrameSolution:
 def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, upper: np.ndarray,
                 active: np.ndarray, *, maxeval: int, xtol_rel: float, ftol_rel: float = 0.0,
                 gradient: str = "analytic", fd_step: float = 1e-3, kinds=None, root_mask=None,
-                algorithm: str = "LD_MMA", warm_start_iterations: int = 0) -> FrameSolution:
+                algorithm: str = "LD_MMA", warm_start_iterations: int = 0,
+                coupling: DofCoupling | None = None) -> FrameSolution:
     """Minimise the objective over the ``active`` DOFs (bool (D,)) within [lower, upper], from
     ``seed`` (D,), optionally after ``warm_start_iterations`` bounded Gauss-Newton steps
-    (:func:`gauss_newton_warm_start`). ``gradient = "forward"`` replaces the analytic gradient by forward
-    differences (one extra evaluation per active DOF) — only to measure the speed-up."""
-    active = np.asarray(active, dtype=bool)
-    base = np.clip(np.asarray(seed, dtype=np.float64), lower, upper)
+    (:func:`gauss_newton_warm_start`). ``coupling``: the rig's DOF couplings, kept exactly (the
+    solver moves the free DOFs; followers are computed from their leaders). ``gradient =
+    "forward"`` replaces the analytic gradient by forward differences (one extra evaluation
+    per active DOF) — only to measure the speed-up."""
+    coupling = coupling if coupling is not None else DofCoupling.identity(len(lower))
+    lower, upper = coupling.bounds(lower, upper)
+    active = np.asarray(active, dtype=bool) & coupling.free
+    base = coupling.apply(np.clip(np.asarray(seed, dtype=np.float64), lower, upper))
     if not np.all(np.isfinite(base)):
         return FrameSolution(base, np.nan, 0, -1000, "the seed is not finite (NaN in an earlier pass's result?)")
     objective.set_seed(base)
     if warm_start_iterations > 0:
-        base = gauss_newton_warm_start(objective, base, lower, upper, active, warm_start_iterations)
+        base = gauss_newton_warm_start(objective, base, lower, upper, active, warm_start_iterations, coupling)
     n = int(active.sum())
     best = {"value": np.inf, "q": base.copy()}
     start_evals = objective.evaluations
@@ -59,7 +65,7 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
     def full(x):
         q = base.copy()
         q[active] = x
-        return q
+        return coupling.apply(q)
 
     def fun(x, grad):
         q = full(x)
@@ -67,16 +73,16 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
             if gradient == "forward":
                 value, _ = objective.value_and_grad(q, want_grad=False)
                 g = np.empty(n)
-                idx = np.nonzero(active)[0]
-                for k, d in enumerate(idx):
-                    qq = q.copy()
-                    step = fd_step if q[d] + fd_step <= upper[d] else -fd_step
-                    qq[d] += step
-                    g[k] = (objective.value_and_grad(qq, want_grad=False)[0] - value) / step
+                hi = upper[active]
+                for k in range(n):
+                    xx = np.array(x, dtype=np.float64)
+                    step = fd_step if xx[k] + fd_step <= hi[k] else -fd_step
+                    xx[k] += step
+                    g[k] = (objective.value_and_grad(full(xx), want_grad=False)[0] - value) / step
                 grad[:] = g
             else:
                 value, g = objective.value_and_grad(q)
-                grad[:] = g[active]
+                grad[:] = coupling.pull_gradient(g)[active]
         else:
             value, _ = objective.value_and_grad(q, want_grad=False)
         if value < best["value"]:
@@ -123,18 +129,27 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
 
 
 def gauss_newton_warm_start(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-                            active: np.ndarray, iterations: int) -> np.ndarray:
+                            active: np.ndarray, iterations: int, coupling: DofCoupling | None = None
+                            ) -> np.ndarray:
     """Bounded Levenberg-Marquardt steps on the least-squares form of the objective
     (:meth:`FrameObjective.residuals`, through its normal equations), from ``seed`` (D,); at
     most ``iterations`` trial steps. MMA alone needs hundreds of evaluations to close a
     hand from rest onto a few hundred contacts; this reaches the basin in about ten, then MMA
     polishes the whole objective. DOFs at a bound whose step points outward are held for that
     step (projected LM); the system is (A, A) with A the active DOF count, so no large
-    factorisation is ever formed."""
+    factorisation is ever formed. With a ``coupling`` the system is carried to the free DOFs
+    (P^T g, P^T H P with P = :meth:`DofCoupling.lift`) and ``active`` must leave the followers out."""
     active_idx = np.nonzero(active)[0]
+    couple = coupling is not None and not coupling.empty
+    lift = coupling.lift() if couple else None
+
+    def system(at):
+        _, g, h = objective.normal_equations(at)
+        return (lift.T @ g, lift.T @ h @ lift) if couple else (g, h)
+
     q = np.clip(seed, lower, upper).copy()
     cost = objective.residual_cost(q)  # every cost compared below comes from residual_cost
-    _, g_all, h_all = objective.normal_equations(q)
+    g_all, h_all = system(q)
     mu = 1e-3
     for _ in range(max(0, int(iterations) - 1)):
         g = g_all[active_idx]
@@ -152,6 +167,8 @@ def gauss_newton_warm_start(objective: FrameObjective, seed: np.ndarray, lower: 
             break
         trial = q.copy()
         trial[active_idx[free]] = np.clip(x[free] + step, lo[free], hi[free])
+        if couple:
+            trial = coupling.apply(trial)
         # a trial is judged by its cost alone; the Jacobian is formed only for a step taken
         # (rejected trials, often half of them, cost a fraction of an iteration)
         cost_new = objective.residual_cost(trial)
@@ -161,7 +178,7 @@ def gauss_newton_warm_start(objective: FrameObjective, seed: np.ndarray, lower: 
             mu = max(mu / 3.0, 1e-9)
             if converged:
                 break
-            _, g_all, h_all = objective.normal_equations(q)
+            g_all, h_all = system(q)
         else:
             mu *= 4.0
             if mu > 1e8:

@@ -166,7 +166,7 @@ def solve_frames(state: dict, frames, seeds, stage: str, keyed: bool = False) ->
     settings = dict(maxeval=cfg.root_maxeval if root_only else cfg.maxeval, xtol_rel=cfg.xtol_rel,
                     ftol_rel=cfg.ftol_rel, gradient=cfg.gradient, fd_step=cfg.fd_step,
                     kinds=[d.kind for d in rig.dofs], root_mask=[d.joint == 0 for d in rig.dofs],
-                    algorithm=cfg.algorithm)
+                    algorithm=cfg.algorithm, coupling=rig.coupling())
     rest = rig.rest_pose
     out = []
     for f, seed in zip(frames, seeds):
