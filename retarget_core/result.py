@@ -14,6 +14,7 @@ Files written by :meth:`RetargetResult.write` into one folder::
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,6 +25,8 @@ from .files import atomic_path
 from .fit.splines import BSplineCurve, evaluate_curves
 from .jsonio import to_jsonable
 from .rig.model import Rig
+
+logger = logging.getLogger(__name__)
 
 RESULT_FORMAT = "handretarget.result"
 RESULT_VERSION = 2
@@ -105,7 +108,8 @@ class RetargetResult:
             "unused_settings": self.unused_settings, "frames": list(self.frames), "provenance": self.provenance,
         })
 
-    def write(self, out_dir, rig_path=None, *, rig_asset_path: str | None = None) -> dict:
+    def write(self, out_dir, rig_path=None, *, rig_asset_path: str | None = None,
+              control_rate_hz: float | None = None) -> dict:
         """Write animation.usda (over ``rig_path`` when it is a rig file the layer composes over,
         :func:`~retarget_core.export.usd_animation.layers_over`; else over a rig.usda written here), result.json, animation.json and scene.npz (object mesh and poses, table,
         the frame's contact targets: what ``handretarget evaluate`` measures against) into
@@ -113,16 +117,30 @@ class RetargetResult:
         written. result.json names the rig file (``rig_file``). ``rig_asset_path``: the layer
         sublayers this asset path as written (the user's own file, where the layer will sit)
         rather than ``rig_path``, which must then be a USD file it composes over; rig.usda is
-        written here too (result.json names it)."""
+        written here too (result.json names it). For a robot rig (URDF / MJCF) animation.json
+        also holds the joint commands in the robot file's order at ``control_rate_hz`` (default:
+        the clip's rate; :mod:`~retarget_core.export.robot_trajectory`)."""
         from .export import write_animation_json, write_animation_usd
+        from .export.robot_trajectory import is_robot, robot_trajectory
         from .export.usd_animation import layers_over
         from .rig.io import USD_SUFFIXES, load_rig, save_rig
 
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
         if self.rig is None and rig_path is None:
             raise InputError("writing a loaded result needs the rig file", element="rig_path")
         rig = self.rig if self.rig is not None else load_rig(rig_path)
+        robot = None
+        if control_rate_hz is not None and not (is_robot(rig) and self.curves):
+            raise InputError("a control rate resamples a robot's joint commands from the delivered curves: this "
+                             f"rig is {'not a URDF / MJCF robot' if not is_robot(rig) else 'without curves (fit off)'}",
+                             element="rate")
+        if is_robot(rig) and self.curves:  # before anything is written: a bad rate stores nothing
+            robot = robot_trajectory(rig, self.curves, float(self.times[-1]) if len(self.times) else 0.0,
+                                     control_rate_hz or self.fps, frame_times=self.times)
+            if robot["velocity_exceeded"]:
+                logger.warning("%s: the delivered curves exceed the file's velocity limits on %s (animation.json "
+                               "robot.velocity lists when)", rig.name, ", ".join(robot["velocity_exceeded"]))
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
         paths = {}
         usd_rig = rig_path is not None and Path(str(rig_path)).suffix.lower() in USD_SUFFIXES
         over = usd_rig and layers_over(rig, rig_path)
@@ -161,7 +179,7 @@ class RetargetResult:
         paths["animation.json"] = out / "animation.json"
         write_animation_json(paths["animation.json"], self.dof_names, self.times, self.sampled(), extra=to_jsonable({
             "rig": self.rig_name, "fps": self.fps, "dof_kinds": self.dof_kinds, "lower": self.lower,
-            "upper": self.upper, "values": "spline" if self.curves else "frames"}))
+            "upper": self.upper, "values": "spline" if self.curves else "frames"}), robot=robot)
         return paths
 
 

@@ -106,6 +106,7 @@ def _rig_asset_path(request, rig_asset, result, rig_file) -> str | None:
 
 def run_job(store: Store, job_id: str, settings: Settings, *, parent: int | None = None) -> JobState:
     """Run job ``job_id`` (state ``running``) to its final state; returns that state."""
+    from retarget_core.export.robot_trajectory import is_robot
     from retarget_core.execute import Executor
     from retarget_core.inputs import load_inputs
     from retarget_core.jsonio import to_jsonable
@@ -164,11 +165,15 @@ def run_job(store: Store, job_id: str, settings: Settings, *, parent: int | None
         _asset_provenance(inputs.sources, request)
         if recorded_id is not None:
             inputs.sources["source_rig"]["asset"] = recorded_id
+        if request.control_rate_hz is not None and not is_robot(inputs.target_rig):
+            raise InputError("control_rate_hz resamples a robot's joint commands; the target rig is not a URDF or "
+                             "MJCF robot", element="control_rate_hz")
         result = retarget(inputs, config, executor)
         # the store's folders are named relative to the data directory, as everywhere the client sees
         result.provenance["executor"]["atlas_cache"] = str(store.paths.atlas_cache.relative_to(store.paths.root))
         progress("writing", 0, 1)
-        result.write(out, paths["rig"], rig_asset_path=_rig_asset_path(request, rig_asset, result, paths["rig"]))
+        result.write(out, paths["rig"], rig_asset_path=_rig_asset_path(request, rig_asset, result, paths["rig"]),
+                     control_rate_hz=request.control_rate_hz)
         _write_usdc(out)
         if request.evaluate:
             from retarget_core.evaluate.report import write_evaluation

@@ -94,6 +94,10 @@ class JobCreate(BaseModel):
     evaluate: bool = Field(default=True, description="also write metrics.json and the report's plots")
     frames: tuple[StrictInt, StrictInt] | None = Field(
         default=None, description="[start, end) frames of the clip to retarget (end excluded); null: the whole clip")
+    control_rate_hz: float | None = Field(
+        default=None, gt=0, le=10000,
+        description="robot rigs (URDF / MJCF): the control rate of the joint commands in animation.json's "
+                    "robot section; null: the clip's frame rate")
     rig_asset_path: str | None = Field(
         default=None, max_length=300, pattern=RIG_ASSET_PATH,
         description="the path animation.usda sublayers for the rig, as you will place it (relative to "

@@ -151,6 +151,19 @@ def test_transfer_with_annotations_for_another_rig_is_a_clear_error(clip_dir, tm
     assert "another rig" in capsys.readouterr().err
 
 
+def test_a_control_rate_on_a_hand_that_is_no_robot_is_refused_before_the_run(clip_dir, tmp_path, capsys):
+    annotations = tmp_path / "alien.json"
+    assert main(["annotate", "propose", "--source", "demo:source_human@0.004", "--target", "demo:alien@0.006",
+                 "--out", str(annotations)]) == 0
+    capsys.readouterr()
+    out = tmp_path / "out"
+    assert main(["retarget", "--clip", str(clip_dir / "box_pinch.npz"), "--rig", "demo:alien@0.006",
+                 "--annotations", str(annotations), "--out", str(out), "--rate", "100"]) == 2
+    err = capsys.readouterr().err
+    assert "--rate" in err and "not a URDF or MJCF robot" in err
+    assert not out.exists()  # refused before anything ran or was written
+
+
 # -- the command line as a package: every command registered, --help everywhere, the service
 # -- imported only when serve/token run and a failed import shown
 

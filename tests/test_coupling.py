@@ -15,6 +15,8 @@ from retarget_core.execute import Executor
 from retarget_core.export import read_animation_json
 from retarget_core.inputs import RunInputs
 from retarget_core.pipeline import retarget
+from retarget_core.export.robot_trajectory import robot_trajectory
+from retarget_core.fit.splines import BSplineCurve, coupled_curves
 from retarget_core.rig.coupling import Coupling, DofCoupling
 from retarget_core.rig.io import resolve_rig
 from retarget_core.solve.config import load_config
@@ -87,6 +89,9 @@ def test_shadow_distal_joints_follow_their_tendon_coupling():
 
 # ---- a mimic-coupled URDF finger, end to end -----------------------------------------------------
 MIMICS = {"id3": ("id2", 0.9, 0.02), "id7": ("id6", 1.0, 0.0)}
+#: LEAP's moving joints in the order its URDF lists them (the file sorts them by name)
+URDF_ORDER = ["id0", "id1", "id10", "id11", "id12", "id13", "id14", "id15", "id2", "id3", "id4", "id5", "id6", "id7",
+              "id8", "id9"]
 
 
 @pytest.fixture(scope="module")
@@ -132,12 +137,21 @@ def test_a_mimic_coupled_finger_keeps_its_ratio_in_the_result(mimic_leap, tmp_pa
         np.testing.assert_allclose(result.q[:, i], m * result.q[:, j] + o, atol=1e-9)
         np.testing.assert_allclose(result.curves[i](dense), m * result.curves[j](dense) + o, atol=1e-9)
         assert np.ptp(result.q[:, j]) > 0.05, "the leader moved: the ratio was exercised"
-    paths = result.write(tmp_path)
+    paths = result.write(tmp_path, control_rate_hz=50.0)
     doc = read_animation_json(paths["animation.json"])
     names = doc["dof_names"]
     values = doc["values"]
     for follower, (leader, m, o) in MIMICS.items():
         np.testing.assert_allclose(values[:, names.index(follower)], m * values[:, names.index(leader)] + o, atol=1e-9)
+    # the robot's commands: the file's joints in its order, at the control rate, ratios kept
+    robot = doc["robot"]
+    assert robot["joints"] == URDF_ORDER
+    positions = np.array(robot["positions"])
+    assert positions.shape == (int(np.floor(result.times[-1] * 50 + 1e-9)) + 1, 16)
+    for follower, (leader, m, o) in MIMICS.items():
+        a, b = URDF_ORDER.index(follower), URDF_ORDER.index(leader)
+        np.testing.assert_allclose(positions[:, a], m * positions[:, b] + o, atol=1e-9)
+    assert {c["dof"] for c in robot["couplings"]} == set(MIMICS)
     # the coupled hand still reaches its contacts (uncoupled LEAP: 12.3 mm on these solved frames;
     # the 0.38 s clip's 4-control-point curve is far off for every hand, see test_foreign_retarget)
     assert result.summary["solved_contact_distance_median_mm"] < 15.0, result.summary
@@ -183,3 +197,40 @@ def test_mjcf_joint_equalities_are_couplings_at_the_models_reference(tmp_path):
     assert "curved" in u["constraint"] and "polynomial" in u["why"]
     q = rig.coupling().apply(np.r_[np.zeros(6), 0.6, 0.0, 0.3])
     assert q[rig.dof_index("j2")] == pytest.approx(0.3)
+
+
+def test_robot_commands_at_a_control_rate_with_velocity_limits_reported(mimic_leap):
+    rig = mimic_leap
+    d = rig.n_dofs
+    curves = []
+    ramp = rig.dof_index("id2")
+    rest = rig.rest_pose
+    for i in range(d):
+        # id2 ramps at -2 rad/s over 0.5 s (LEAP's file allows 1 rad/s); the rest hold still,
+        # the root turns a quarter turn about z
+        c0, c1 = rest[i], rest[i]
+        if i == ramp:
+            c0, c1 = 0.2, -0.8
+        if rig.dof_names[i] == "root_rz":
+            c0, c1 = 0.0, np.pi / 2
+        curves.append(BSplineCurve(np.array([0, 0, 0.5, 0.5]), np.array([c0, c1]), degree=1))
+    curves = coupled_curves(curves, rig.coupling())
+    robot = robot_trajectory(rig, curves, 0.5, 40.0, frame_times=np.linspace(0, 0.5, 7))
+    times = np.array(robot["times"])
+    np.testing.assert_allclose(times, np.arange(21) / 40.0, atol=1e-15)
+    positions = np.array(robot["positions"])
+    k = URDF_ORDER.index("id2")
+    np.testing.assert_allclose(positions[:, k], 0.2 - 2.0 * times, atol=1e-12)
+    np.testing.assert_allclose(positions[:, URDF_ORDER.index("id3")], 0.9 * (0.2 - 2.0 * times) + 0.02, atol=1e-12)
+    v = robot["velocity"]
+    assert v["id2"]["limit"] == 1.0 and v["id2"]["max"] == pytest.approx(2.0)
+    assert v["id3"]["max"] == pytest.approx(1.8)
+    assert set(robot["velocity_exceeded"]) == {"id2", "id3"} and v["id0"]["exceeded_at"] == []
+    # the base turns a quarter turn about z: quaternion (cos, 0, 0, sin) of half the angle, unit
+    quat = np.array(robot["base"]["quaternion_wxyz"])
+    half = np.pi / 4 * times / 0.5
+    np.testing.assert_allclose(np.abs(quat[:, 0]), np.cos(half), atol=1e-9)
+    np.testing.assert_allclose(np.abs(quat[:, 3]), np.sin(half), atol=1e-9)
+    assert np.all(np.sum(quat[1:] * quat[:-1], axis=1) > 0)  # no sign flips between samples
+    with pytest.raises(InputError, match="control rate"):
+        robot_trajectory(rig, curves, 0.5, 0.0)

@@ -5,6 +5,10 @@ from __future__ import annotations
 
 import sys
 
+import numpy as np
+
+from ..errors import InputError
+
 
 class _UsageError(Exception):
     pass
@@ -78,9 +82,17 @@ class _ProgressBar:
             self.stream.flush()
 
 
-def _run_retarget(inputs, config, executor, out, rig_path, pairs=None):
-    """Retarget with a progress bar on stderr and write the result files; (result, paths)."""
+def _run_retarget(inputs, config, executor, out, rig_path, pairs=None, control_rate_hz=None):
+    """Retarget with a progress bar on stderr and write the result files (a robot's joint
+    commands at ``control_rate_hz``); (result, paths)."""
+    from ..export.robot_trajectory import is_robot
     from ..pipeline import retarget
+
+    if control_rate_hz is not None and not is_robot(inputs.target_rig):
+        raise InputError(f"--rate resamples a robot's joint commands; {inputs.target_rig.name!r} is not a URDF or "
+                         "MJCF robot (its curves are in animation.usda)", element="rate")
+    if control_rate_hz is not None and not (np.isfinite(control_rate_hz) and control_rate_hz > 0):
+        raise InputError(f"--rate must be a positive number of Hz, got {control_rate_hz}", element="rate")
 
     bar = _ProgressBar()
     executor.progress = bar
@@ -88,7 +100,7 @@ def _run_retarget(inputs, config, executor, out, rig_path, pairs=None):
         result = retarget(inputs, config, executor, pairs=pairs)
     finally:
         bar.close()
-    return result, result.write(out, rig_path)
+    return result, result.write(out, rig_path, control_rate_hz=control_rate_hz)
 
 
 def _fmt_mm(value) -> str:

@@ -28,11 +28,15 @@ def add_commands(sub) -> None:
     ret.add_argument("--max-annotation-displacement-mm", type=float, default=3.0, metavar="MM",
                      help="annotations with positions made for an earlier version of a rig's mesh are carried onto "
                           "its current mesh (closest surface point); refuse when a point moves further (default 3)")
+    ret.add_argument("--rate", type=float, default=None, metavar="HZ",
+                     help="robot rigs (URDF / MJCF): the control rate of the joint commands in animation.json "
+                          "(default: the clip's frame rate)")
     _executor_arguments(ret)
     ret.set_defaults(func=_cmd_retarget)
 
 
 def _cmd_retarget(args) -> int:
+    from ..export import read_animation_json
     from ..inputs import load_inputs
     from ..solve.config import load_config
 
@@ -44,7 +48,8 @@ def _cmd_retarget(args) -> int:
                          target_options={"root_body": args.root_body, "hand_root": args.hand_root,
                                          "mapping": load_hand_mapping(args.hand_map) if args.hand_map else None})
     rig_path = None if str(args.rig).startswith("demo:") else args.rig
-    result, paths = _run_retarget(inputs, config, _executor(args), Path(args.out), rig_path)
+    result, paths = _run_retarget(inputs, config, _executor(args), Path(args.out), rig_path,
+                                  control_rate_hz=args.rate)
     s = result.summary
     print(f"retargeted {args.clip} (frames {result.frames[0]}:{result.frames[1]}) onto {inputs.target_rig.name}: "
           f"{s['frames']} frames, {s['dofs']} DOFs, {s['control_points'] or 'no'} control points per DOF")
@@ -62,6 +67,12 @@ def _cmd_retarget(args) -> int:
         print(f"  annotations: {line}")
     for key, v in result.unused_settings.items():
         print(f"  note: {key} = {v['value']!r} is not used: {v['why']}")
+    robot = read_animation_json(paths["animation.json"]).get("robot")
+    if robot:
+        over = robot["velocity_exceeded"]
+        print(f"  robot: {len(robot['joints'])} joints in the file's order at {robot['rate_hz']:g} Hz; velocity "
+              f"limits {robot['velocity_limits']}" + (f", exceeded on {', '.join(over)} (animation.json robot.velocity "
+                                                      "lists when)" if over else ", all kept"))
     for path in paths.values():
         print(f"wrote {path}")
     return 0

@@ -505,13 +505,14 @@ def read_dof_bsplines(path) -> dict:
 
 
 # ---- JSON ------------------------------------------------------------------------------------
-def write_animation_json(path, dof_names, times, values, extra: dict | None = None) -> None:
+def write_animation_json(path, dof_names, times, values, extra: dict | None = None, robot: dict | None = None) -> None:
     """Per-frame DOF values for robot users, atomically::
 
         {"format": "handretarget.animation", "version": 1, "dof_names": [...D],
-         "times": [...F seconds], "values": [[...D] x F], "extra": {...}}
+         "times": [...F seconds], "values": [[...D] x F], "extra": {...}, "robot": {...}}
 
-    times: (F,); values: (F, D) radians / metres."""
+    times: (F,); values: (F, D) radians / metres; ``robot`` (only for robot rigs): the joint
+    commands in the robot file's terms (:func:`~retarget_core.export.robot_trajectory.robot_trajectory`)."""
     dof_names = [str(n) for n in dof_names]
     times = np.asarray(times, dtype=np.float64).reshape(-1)
     values = np.asarray(values, dtype=np.float64)
@@ -528,6 +529,8 @@ def write_animation_json(path, dof_names, times, values, extra: dict | None = No
         "values": values.tolist(),
         "extra": extra or {},
     }
+    if robot is not None:
+        doc["robot"] = robot
     try:
         text = json.dumps(to_jsonable(doc), indent=1)
     except (TypeError, ValueError) as exc:

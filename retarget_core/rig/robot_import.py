@@ -422,6 +422,7 @@ def load_urdf(path, *, wrapper_resolution: float = 0.002, confine_to=None) -> Ri
     # link -> (rig joint index, offset from that joint's frame to the link frame)
     link_frame: dict[str, tuple[int, np.ndarray]] = {base: (1, np.eye(4))}
     stack = [base]
+    velocity_limits = {}  # DOF name -> rad/s or m/s, from <limit velocity>
     visited = {base}
     order = [base]
     while stack:
@@ -448,6 +449,8 @@ def load_urdf(path, *, wrapper_resolution: float = 0.002, confine_to=None) -> Ri
                         source=source,
                         element=el,
                     )
+                if j.limit is not None and j.limit.velocity is not None and float(j.limit.velocity) > 0:
+                    velocity_limits[j.name] = float(j.limit.velocity)
                 joints.append(Joint(j.child, owner, offset @ origin))
                 index = len(joints) - 1
                 kind = "translate" if j.type == "prismatic" else "rotate"
@@ -492,6 +495,7 @@ def load_urdf(path, *, wrapper_resolution: float = 0.002, confine_to=None) -> Ri
         "wrapper_offset": WRAPPER_OFFSET,
         "couplings": [c.to_dict() for c in couplings],
         "joint_order": [j.name for j in robot.joints if j.type != "fixed"],
+        "velocity_limits": velocity_limits,
     }
     return _finish(robot.name or path.stem, joints, dofs, pieces, source, metadata, wrapper_resolution)
 
