@@ -33,9 +33,10 @@ $(BLENDER_STAMP): Makefile
 demo: setup
 	$(BIN)/handretarget demo --out $(DEMO_OUT)
 
+# the service tests beside the core tests and then the Blender add-in's, one lane per core
+# (tests/run_lanes.sh; either lane failing or collecting nothing fails the target)
 test: setup
-	$(BIN)/python -m pytest --durations=15
-	HANDRETARGET_REQUIRE_BLENDER=1 $(BLENDER_VENV)/bin/python -m pytest dcc_client/tests_blender
+	bash tests/run_lanes.sh $(BIN) $(BLENDER_VENV)/bin
 
 extension: setup
 	$(BLENDER_VENV)/bin/python dcc_client/build_extension.py --out dist

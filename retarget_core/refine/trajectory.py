@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
-from scipy import ndimage, signal
+from scipy import ndimage
 
 from retarget_core.errors import InputError
 
@@ -258,6 +258,8 @@ def lowpass_and_remove_peaks(q, fps: float, cutoff_hz: float | None, peak_thresh
         if not np.isfinite(cutoff) or cutoff <= 0:
             raise InputError(f"must be positive, got {cutoff_hz!r}", element="cutoff_hz")
         if cutoff < nyquist:
+            from scipy import signal  # here: importing scipy.signal costs every process ~0.4 s
+
             sos = signal.butter(int(order), cutoff / nyquist, btype="low", output="sos")
             # sosfiltfilt's default pad length; it must be shorter than the signal
             default_pad = 3 * (2 * len(sos) + 1 - min((sos[:, 2] == 0).sum(),

@@ -1,0 +1,36 @@
+#!/usr/bin/env bash
+# The whole test suite in two lanes at once, one per core of the 2-core machines it runs on:
+#   service: tests/service (mostly waiting on job processes and servers on 127.0.0.1)
+#   core:    every other test, then the Blender add-in's tests (real bpy, its own venv)
+# Each lane has its own pytest base temp; both logs are printed when both are done, and the
+# suite fails when either lane fails or collects nothing (pytest exits 5 then).
+# Usage (what `make test` runs): tests/run_lanes.sh VENV_BIN BLENDER_VENV_BIN
+set -uo pipefail
+cd "$(dirname "$0")/.."
+BIN=${1:?the service venv bin folder}
+BLENDER_BIN=${2:?the Blender venv bin folder}
+work=$(mktemp -d "${TMPDIR:-/tmp}/handretarget-tests.XXXXXX")
+trap 'rm -rf "$work"' EXIT
+
+(
+  "$BIN/python" -m pytest --durations=15 --basetemp="$work/service" tests/service > "$work/service.log" 2>&1
+  echo $? > "$work/service.rc"
+) &
+(
+  "$BIN/python" -m pytest --durations=15 --basetemp="$work/core" tests --ignore=tests/service > "$work/core.log" 2>&1
+  echo $? > "$work/core.rc"
+  HANDRETARGET_REQUIRE_BLENDER=1 "$BLENDER_BIN/python" -m pytest --basetemp="$work/blender" \
+    dcc_client/tests_blender > "$work/blender.log" 2>&1
+  echo $? > "$work/blender.rc"
+) &
+wait
+
+status=0
+for lane in service core blender; do
+  echo "=================================== lane: $lane ==================================="
+  cat "$work/$lane.log" 2>/dev/null || echo "(no log: the lane did not run)"
+  rc=$(cat "$work/$lane.rc" 2>/dev/null || echo 1)
+  echo "lane $lane exited with $rc"
+  [ "$rc" = 0 ] || status=1
+done
+exit $status
