@@ -5,10 +5,6 @@ from __future__ import annotations
 
 import sys
 
-import numpy as np
-
-from ..errors import InputError
-
 
 class _UsageError(Exception):
     pass
@@ -85,6 +81,9 @@ class _ProgressBar:
 def _run_retarget(inputs, config, executor, out, rig_path, pairs=None, control_rate_hz=None):
     """Retarget with a progress bar on stderr and write the result files (a robot's joint
     commands at ``control_rate_hz``); (result, paths)."""
+    import numpy as np
+
+    from ..errors import InputError
     from ..export.robot_trajectory import is_robot
     from ..pipeline import retarget
 
