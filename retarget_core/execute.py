@@ -25,8 +25,8 @@ from typing import Callable
 import numpy as np
 
 from .errors import InputError
-from .solve.problem import (Problem, build_solver_state, follow_branch, frame_systems, frame_values, solve_frames,
-                            solve_root_sequence)
+from .solve.problem import (Problem, build_solver_state, frame_systems, frame_values, solve_frames,
+                            solve_root_sequence, trace_branch)
 
 Progress = Callable[[str, int, int], None]
 
@@ -201,13 +201,13 @@ class FrameRunner:
         calls = [(np.asarray(frames, dtype=np.int64), seed) for frames, seed in zip(segments, seeds)]
         return self._run(solve_root_sequence, calls, sum(len(s) for s in segments), label)
 
-    def follow_branches(self, runs, seeds, currents, *, label: str | None = None) -> list:
-        """:func:`~retarget_core.solve.problem.follow_branch` over each run of ``runs`` (frame
+    def trace_branches(self, runs, seeds, currents, *, label: str | None = None) -> list:
+        """:func:`~retarget_core.solve.problem.trace_branch` over each run of ``runs`` (frame
         arrays) from its seed, against its frames' ``currents``; the runs in parallel, each
         sequential (so the result does not depend on the worker count)."""
         calls = [(np.asarray(r, dtype=np.int64), np.asarray(s, dtype=np.float64), np.asarray(c, dtype=np.float64))
                  for r, s, c in zip(runs, seeds, currents)]
-        return self._run(follow_branch, calls, sum(len(r) for r in runs), label)
+        return self._run(trace_branch, calls, sum(len(r) for r in runs), label)
 
     def _chunks(self, frames, qs, *extra):
         """Calls of (frames, qs (F, D), *extra) in chunks sized for the workers."""

@@ -32,10 +32,10 @@ from .fit.splines import coupled_curves, evaluate_curves, fit_trajectory
 from .inputs import RunInputs, frame_range
 from .mesh.surface_points import SurfacePoints
 from .pairing.dense import ContactPairs, pair_contacts
-from .refine.branches import branch_jumps, branch_runs
+from .refine.branches import branch_jumps, branch_runs, choose_branch_path
 from .refine.trajectory import lowpass_and_remove_peaks, refine_trajectory
 from .result import RetargetResult
-from .rig.anatomy import set_root_transform
+from .rig.anatomy import continuous_root_angles, set_root_transform
 from .rig.hand_cut import surface_matches_hand
 from .rig.model import Rig
 from .solve.collision import collision_grids
@@ -102,27 +102,38 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
                 timings["full pass"] = reports["full"].seconds
             # 5b. coherence: frames that left their neighbours' branch, re-solved from it
             # (the contacts method only: a baseline keeps the root pass's root, see solve/baselines.py)
-            if config.passes.full and config.passes.coherence and clip.n_frames >= 2 and config.method == "contacts":
+            coherent = config.passes.full and config.passes.coherence and clip.n_frames >= 2 and config.method == "contacts"
+            if coherent:
                 q, reports["coherence"] = coherence_pass(runner, problem, q)
                 timings["coherence"] = reports["coherence"].seconds
+            # the root's Euler angles continuous from frame to frame before anything filters them
+            q = continuous_root_angles(target, q)
             # 6. low-pass and peak removal, re-solving the frames the filter moved
             if config.passes.filter and clip.n_frames >= 8:
                 t0 = time.perf_counter()
+                before = q
                 q, report = filter_pass(runner, q, target, clip.fps, config)
                 if report is not None:
                     reports["filter"] = report
+                    if coherent:  # a re-solve from a filtered key can land on the other branch
+                        q, report.held = hold_branches(problem, before, q)
                 timings["filter"] = time.perf_counter() - t0
             # 7. acceleration refinement
             unresolved = np.zeros(q.shape, dtype=bool)
             if config.passes.refine and clip.n_frames >= 3:
                 t0 = time.perf_counter()
+                before = q
                 q, reports["refine"] = refinement(runner, q, target, clip.fps, config)
                 unresolved = reports["refine"].unresolved
+                if coherent:
+                    q, held = hold_branches(problem, before, q)
+                    reports["refine"].held = held
+                    unresolved[held] = False  # back to the solution the check passed before
                 timings["refinement"] = time.perf_counter() - t0
             # 8. one cubic B-spline per DOF, polished on the frames' objective; coupled DOFs
             # (mimic joints) follow their leaders exactly, as every solve kept them
             coupling = target.coupling()
-            q = coupling.apply(q)  # the filter's frames that were not re-solved
+            q = coupling.apply(continuous_root_angles(target, q))  # the filter's frames that were not re-solved
             times = np.arange(clip.n_frames) / clip.fps
             curves, fit_report = None, None
             if config.passes.fit:
@@ -256,10 +267,12 @@ def build_problem(clip: Clip, pairs: ContactPairs, source: Rig, target: Rig, ann
 
 # ---- the passes -------------------------------------------------------------------------------
 class PassReport:
-    """Frames solved, objective evaluations, failed frames [(frame, error)], seconds."""
+    """Frames solved, objective evaluations, failed frames [(frame, error)], seconds; held:
+    frames given their earlier solution back (see :func:`hold_branches`)."""
 
     def __init__(self, frames: int = 0):
         self.frames, self.evaluations, self.failed, self.seconds = frames, 0, [], 0.0
+        self.held = []
 
 
 def root_segments(n_frames: int) -> list[np.ndarray]:
@@ -326,17 +339,17 @@ def solve_pass(runner: FrameRunner, frames, seeds: np.ndarray, label: str, keyed
     return out, report
 
 
-#: Rounds of forward and backward sweeps of the coherence pass (each round re-detects the jumps).
+#: Rounds of the coherence pass: each traces the branches across the jumps its path still has.
 COHERENCE_ROUNDS = 3
 
 
 class CoherenceReport(PassReport):
-    """A :class:`PassReport` with the jumps found before and left after the pass, and the
-    frames whose solution was replaced."""
+    """A :class:`PassReport` with the jumps found before and left after the pass, the
+    candidate solutions traced, and the frames whose solution was replaced."""
 
     def __init__(self, frames: int = 0):
         super().__init__(frames)
-        self.jumps_before, self.jumps_after, self.replaced = 0, 0, []
+        self.jumps_before, self.jumps_after, self.candidates, self.replaced = 0, 0, 0, []
 
 
 def target_marker_points(problem: Problem, q: np.ndarray) -> np.ndarray:
@@ -350,44 +363,84 @@ def target_marker_points(problem: Problem, q: np.ndarray) -> np.ndarray:
 def coherence_pass(runner: FrameRunner, problem: Problem, q: np.ndarray):
     """After the full pass, which solves every frame on its own: a step where the solved hand
     turns or moves far more than the source does (:func:`~retarget_core.refine.branches.branch_jumps`)
-    is a frame that left its neighbours' branch. The frames after each jump are re-solved
-    seeded from the frame before it, one after the other, and the frames before it from the
-    frame after, keeping a new solution only when its objective is lower; a run stops at the
-    first frame that keeps its own. Rounds of both sweeps repeat while anything changes
-    (:data:`COHERENCE_ROUNDS` at most). Each run is sequential inside one worker and the runs
-    are fixed before they start, so the result does not depend on the worker count."""
+    is a frame that left its neighbours' branch. Each stretch between jumps is carried on
+    across the clip, forward from its last frame and backward from its first, every frame
+    re-solved seeded from the one before until the run rejoins the solution there; so a frame
+    holds one candidate per branch. The path through the candidates with the fewest jumps, and
+    among those the lowest summed objective, replaces the solutions
+    (:func:`~retarget_core.refine.branches.choose_branch_path`); a new round traces from the
+    jumps it still has (:data:`COHERENCE_ROUNDS` at most). A jump no branch avoids (the
+    objective itself turns the hand there) is left. The runs are fixed before they start and
+    each is sequential in one worker, so the result does not depend on the worker count."""
     t0 = time.perf_counter()
     source_points = problem.markers.source_positions
+    own = q.copy()
     q = q.copy()
     report = CoherenceReport(0)
-    jumps = branch_jumps(target_marker_points(problem, q), source_points)
+    points = target_marker_points(problem, q)
+    jumps = branch_jumps(points, source_points)
     report.jumps_before = int(jumps.sum())
-    replaced = set()
+    # per frame: candidate poses and their objectives; the frame's own solution first
+    poses = [[qf] for qf in q]
+    values: list[list] = [[0.0] for _ in q]  # own values filled in where a trace brings a rival
+    valued = np.zeros(len(q), dtype=bool)
     for round_ in range(COHERENCE_ROUNDS):
-        runner.executor.report("coherence", round_, COHERENCE_ROUNDS)
-        changed = False
-        for direction in (1, -1):
-            runs = branch_runs(jumps, direction)
-            if not runs:
-                continue
-            seeds = [q[r[0] - direction] for r in runs]
-            for f, qf, evals, error, better in runner.follow_branches(runs, seeds, [q[r] for r in runs]):
-                report.frames += 1
-                report.evaluations += evals
-                if error:
-                    report.failed.append((f, error))
-                if better:
-                    q[f] = qf
-                    replaced.add(f)
-                    changed = True
-            jumps = branch_jumps(target_marker_points(problem, q), source_points)
-        if not changed:
+        if not jumps.any():
             break
+        runner.executor.report("coherence", round_, COHERENCE_ROUNDS)
+        runs = branch_runs(jumps, 1) + branch_runs(jumps, -1)
+        seeds = [q[r[0] - 1] for r in branch_runs(jumps, 1)] + [q[r[0] + 1] for r in branch_runs(jumps, -1)]
+        for f, qf, value, own_value, evals, error in runner.trace_branches(runs, seeds, [q[r] for r in runs]):
+            report.frames += 1
+            report.evaluations += evals
+            if error:
+                report.failed.append((f, error))
+                continue
+            if not valued[f] and np.array_equal(q[f], own[f]):
+                values[f][0], valued[f] = own_value, True
+            poses[f].append(qf)
+            values[f].append(value)
+            report.candidates += 1
+        for f in np.nonzero(~valued)[0]:  # a frame whose own value was not measured has no rival
+            if len(poses[f]) > 1:
+                raise RuntimeError(f"coherence: frame {f} has rivals but no value of its own solution")
+        candidate_points = [target_marker_points(problem, np.array(p)) for p in poses]
+        path, _ = choose_branch_path(candidate_points, values, source_points)
+        new_q = np.array([poses[f][k] for f, k in enumerate(path)])
+        if np.array_equal(new_q, q):
+            break
+        q = new_q
+        jumps = branch_jumps(target_marker_points(problem, q), source_points)
     runner.executor.report("coherence", COHERENCE_ROUNDS, COHERENCE_ROUNDS)
     report.jumps_after = int(jumps.sum())
-    report.replaced = sorted(replaced)
+    report.replaced = [int(f) for f in np.nonzero(np.any(q != own, axis=1))[0]]
     report.seconds = time.perf_counter() - t0
     return q, report
+
+
+def hold_branches(problem: Problem, before: np.ndarray, after: np.ndarray) -> tuple[np.ndarray, list]:
+    """A pass after the coherence pass (filter, refinement) re-solves frames from filtered or
+    interpolated keys, and a key between two poses can seed the other branch. A frame that
+    pass changed and that now jumps against a neighbour (:func:`branch_jumps`) where it did not
+    before (T, D) gets its earlier solution back. Returns q (T, D) and the frames held."""
+    source_points = problem.markers.source_positions
+
+    def jumps_at_frames(q):
+        j = branch_jumps(target_marker_points(problem, q), source_points).astype(np.int64)
+        count = np.zeros(len(q), dtype=np.int64)
+        count[:-1] += j
+        count[1:] += j
+        return count
+
+    had = jumps_at_frames(before)
+    q, held = after.copy(), set()
+    for _ in range(COHERENCE_ROUNDS):  # a frame held back can clear its neighbour's jump too
+        bad = np.any(q != before, axis=1) & (jumps_at_frames(q) > had)
+        if not bad.any():
+            break
+        q[bad] = before[bad]
+        held.update(int(f) for f in np.nonzero(bad)[0])
+    return q, sorted(held)
 
 
 def filter_pass(runner: FrameRunner, q: np.ndarray, rig: Rig, fps: float, config: RetargetConfig):
@@ -443,10 +496,11 @@ def run_counts(reports: dict) -> dict:
             continue
         passes[name] = {"frames": r.frames, "evaluations": r.evaluations,
                         "evaluations_per_frame": r.evaluations / r.frames if r.frames else 0.0,
-                        "failed": [{"frame": int(f), "error": str(e)} for f, e in r.failed]}
+                        "failed": [{"frame": int(f), "error": str(e)} for f, e in r.failed],
+                        "held": [int(f) for f in r.held]}
         if isinstance(r, CoherenceReport):
             passes[name].update(jumps_before=r.jumps_before, jumps_after=r.jumps_after,
-                                replaced=[int(f) for f in r.replaced])
+                                candidates=r.candidates, replaced=[int(f) for f in r.replaced])
         for f, e in r.failed:
             failed.setdefault(int(f), str(e))
     return {"passes": passes, "refinement": reports["refine"].to_dict() if "refine" in reports else None,

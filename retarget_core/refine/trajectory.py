@@ -127,13 +127,15 @@ class RefinementReport:
     the i-th check (one more check than ``iterations`` unless the loop converged on its last
     allowed round); ``frames_resolved_per_iteration[i]`` the number of frames re-solved in
     round i. ``unresolved`` is the ``(F, D)`` mask of entries still violating at the end — leave
-    them out of the spline fit."""
+    them out of the spline fit. ``held``: frames given their solution from before the
+    refinement back because its re-solve left the branch (``pipeline.hold_branches``)."""
 
     iterations: int
     converged: bool
     violations_per_iteration: list[int] = field(default_factory=list)
     frames_resolved_per_iteration: list[int] = field(default_factory=list)
     unresolved: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
+    held: list = field(default_factory=list)
 
     @property
     def n_unresolved(self) -> int:
@@ -153,6 +155,7 @@ class RefinementReport:
             "frames_resolved_per_iteration": list(self.frames_resolved_per_iteration),
             "n_unresolved": self.n_unresolved,
             "n_unresolved_frames": int(self.unresolved_frames.size),
+            "held": [int(f) for f in self.held],
         }
 
 

@@ -52,6 +52,41 @@ def root_transform(rig: Rig, q: np.ndarray) -> np.ndarray:
     return rig.kinematics().pose(q).world[0]
 
 
+ROOT_ANGLE_DOFS = ("root_rx", "root_ry", "root_rz")
+
+
+def continuous_root_angles(rig: Rig, q: np.ndarray) -> np.ndarray:
+    """q (T, D) radians / metres with each frame's root Euler angles (root_rx, root_ry, root_rz;
+    rotation = Rx(a) Ry(b) Rz(c)) written as the triple for the same rotation nearest the
+    frame before it, within the DOF limits: a +- 2 pi turns, and (a + pi, pi - b, c + pi).
+    Frames solved from different seeds may sit in different of these charts (near b = 90
+    degrees they are far apart for rotations that are close), and a curve fitted through the
+    angles would then spin the hand round. Every frame keeps its pose; a rig without the
+    standard free root comes back as it was."""
+    q = np.array(q, dtype=np.float64)
+    names = rig.dof_names
+    if len(q) < 2 or not all(n in names for n in ROOT_ANGLE_DOFS):
+        return q
+    idx = np.array([names.index(n) for n in ROOT_ANGLE_DOFS])
+    lo, hi = rig.lower[idx], rig.upper[idx]
+    turns = 2 * np.pi * np.arange(-3, 4)
+    for t in range(1, len(q)):
+        prev, (a, b, c) = q[t - 1, idx], q[t, idx]
+        best, best_cost = q[t, idx], np.inf
+        for base in (np.array([a, b, c]), np.array([a + np.pi, np.pi - b, c + np.pi])):
+            choice = base[:, None] + turns[None, :]  # (3, 7): each angle with whole turns added
+            ok = (choice >= lo[:, None] - 1e-9) & (choice <= hi[:, None] + 1e-9)
+            if not ok.any(axis=1).all():
+                continue
+            dist = np.where(ok, np.abs(choice - prev[:, None]), np.inf)
+            x = choice[np.arange(3), dist.argmin(axis=1)]
+            cost = float(np.sum((x - prev) ** 2))
+            if cost < best_cost - 1e-12:
+                best, best_cost = x, cost
+        q[t, idx] = best
+    return q
+
+
 # ---- fingers -----------------------------------------------------------------------------------
 @dataclass
 class Finger:

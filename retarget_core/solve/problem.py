@@ -202,13 +202,12 @@ def frame_value(state: dict, frame: int, q: np.ndarray, stage: str = "fingers") 
     return float(value)
 
 
-def follow_branch(state: dict, frames, seed, current, gap: float = JUMP_MIN_SHIFT) -> list:
-    """Re-solve the run ``frames`` (in order) each seeded from the solution before it (the
-    first from ``seed`` (D,)), keeping a new solution only when its objective is lower than
-    that of the frame's ``current`` one (F, D). The run goes on while the frame's own solution
-    was on another branch (a marker point more than ``gap`` metres from the new one) and stops
-    at the first frame that keeps its own or was on this branch already. Returns
-    [(frame, q, evaluations, error, improved)] for the frames visited."""
+def trace_branch(state: dict, frames, seed, current, gap: float = JUMP_MIN_SHIFT) -> list:
+    """Carry a branch along the run ``frames`` (in order): each frame re-solved seeded from the
+    solution before it (the first from ``seed`` (D,)). The run ends where it rejoins the
+    frame's ``current`` solution (F, D) (every marker point within ``gap`` metres of it: the
+    same branch from there on) or a solve fails. Returns [(frame, q, value, current value,
+    evaluations, error)] for the frames visited (values: :func:`frame_value`)."""
     problem: Problem = state["problem"]
     kin = problem.rig.kinematics()
     m = problem.markers
@@ -217,9 +216,9 @@ def follow_branch(state: dict, frames, seed, current, gap: float = JUMP_MIN_SHIF
     for f, mine in zip(frames, current):
         mine = np.asarray(mine, dtype=np.float64)
         (_, q, evals, error), = solve_frames(state, [f], [seed], "fingers")
-        better = not error and frame_value(state, f, q) < frame_value(state, f, mine)
-        out.append((int(f), q if better else mine, evals, error, bool(better)))
-        if not better or np.linalg.norm(kin.points(q, binding) - kin.points(mine, binding), axis=1).max() <= gap:
+        value = np.inf if error else frame_value(state, f, q)
+        out.append((int(f), q, value, frame_value(state, f, mine), evals, error))
+        if error or np.linalg.norm(kin.points(q, binding) - kin.points(mine, binding), axis=1).max() <= gap:
             break
         seed = q
     return out
