@@ -1,0 +1,130 @@
+"""A clip with two root branches that fit about equally well: the delivered curve does not jump.
+
+The LEAP hand (URDF from the ghand wheel, proposed annotations, no edits) has fingers 1.8x the
+source's and a thumb in the palm plane, so the 25 markers cannot all be met and its root has
+two poses about 110 degrees apart that score alike. The clip is built for it: the demo bottle
+held and lifted (contact in every frame) while hand and bottle turn slowly about the vertical
+through the bottle, so the source root turns a known amount every frame. Solved frame by frame
+(coherence pass off), the root flips between the branches; the default preset must deliver a
+curve whose root changes per frame by at most 10 degrees / 10 mm, its shift at most twice the
+source's own largest. Not yet asserted: issue 20's "rotation at most twice the source's" (here
+1.03 degrees against 2 x 0.5): the LEAP hand turns its root about 30 degrees more than the
+source over the lift, where its contacts pull, and the curve spreads that at up to 1 degree a
+frame."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from retarget_core.clip.demo import grasp_window, make_demo_clip, source_rig
+from retarget_core.execute import Executor
+from retarget_core.inputs import RunInputs
+from retarget_core.pipeline import retarget
+from retarget_core.rig.anatomy import continuous_root_angles, root_transform, set_root_transform
+from retarget_core.rig.io import resolve_rig
+from retarget_core.solve.config import load_config
+from retarget_core.transfer.propose import propose_annotations
+from tests.installed_models import installed_or_none
+
+TURN_DEG_PER_FRAME = 0.5
+
+
+def _rot_z(angle):
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def turned_clip(clip, source, deg_per_frame):
+    """The clip with hand and object turned by ``deg_per_frame`` more each frame about the
+    vertical (z, the table's normal) through the object's first position."""
+    centre = clip.object_poses[0][:3, 3].copy()
+    hand = clip.hand_vertices.astype(np.float64).copy()
+    poses, dofs = clip.object_poses.copy(), clip.dof_values.copy()
+    for t in range(clip.n_frames):
+        m = np.eye(4)
+        m[:3, :3] = _rot_z(np.radians(deg_per_frame * t))
+        m[:3, 3] = centre - m[:3, :3] @ centre
+        hand[t] = hand[t] @ m[:3, :3].T + m[:3, 3]
+        poses[t] = m @ poses[t]
+        dofs[t] = set_root_transform(source, dofs[t], m @ root_transform(source, dofs[t]))
+    return dataclasses.replace(clip, hand_vertices=hand.astype(clip.hand_vertices.dtype), object_poses=poses,
+                               dof_values=dofs)
+
+
+def root_steps(rig, q):
+    """Per step of q (T, D): the root's rotation (T-1,) degrees and its origin's shift (T-1,) mm."""
+    world = np.array([rig.kinematics().pose(x).world[0] for x in q])
+    r = np.einsum("tji,tjk->tik", world[:-1, :3, :3], world[1:, :3, :3])
+    angle = np.degrees(np.arccos(np.clip((np.trace(r, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    return angle, 1000 * np.linalg.norm(world[1:, :3, 3] - world[:-1, :3, 3], axis=1)
+
+
+@pytest.fixture(scope="module")
+def two_branch_case():
+    if installed_or_none("leap") is None:
+        pytest.skip("the LEAP hand's wheel (ghand) is not installed")
+    source = source_rig()
+    # the hold and lift: 116 frames starting just after the grasp closed
+    window = grasp_window(make_demo_clip("bottle_pick_place", rig=source), 240).slice(124, 240)
+    assert (window.contact_labels > 0).any(axis=1).all()
+    clip = turned_clip(window, source, TURN_DEG_PER_FRAME)
+    target = resolve_rig("installed:leap", wrapper_resolution=0.004)
+    inputs = RunInputs.of(clip, source, target, propose_annotations(source, target))
+    results = {on: retarget(inputs, load_config(None, "default", {"passes.coherence": on}), Executor(workers=2))
+               for on in (True, False)}
+    return source, clip, target, results
+
+
+def test_the_delivered_root_stays_on_one_branch(two_branch_case):
+    source, clip, target, results = two_branch_case
+    src_angle, src_shift = root_steps(source, clip.dof_values)
+    np.testing.assert_allclose(src_angle, TURN_DEG_PER_FRAME, atol=1e-6)  # the built turn
+
+    # frame by frame the root flips between two branches far apart ...
+    alone = results[False]
+    solved_angle, _ = root_steps(target, alone.q)
+    assert solved_angle.max() > 60, solved_angle.max()
+    # ... that fit about equally well (the solved frames' contact error with and without the
+    # coherence pass within 1 mm: neither branch is a bad fit the pass could simply reject)
+    coherent = results[True]
+    assert abs(coherent.summary["solved_contact_distance_median_mm"]
+               - alone.summary["solved_contact_distance_median_mm"]) < 1.0, (coherent.summary, alone.summary)
+    assert coherent.counts["passes"]["coherence"]["jumps_before"] > 0
+
+    # the delivered curve: no jump
+    angle, shift = root_steps(target, coherent.sampled())
+    assert angle.max() <= 10.0, (angle.max(), int(angle.argmax()), src_angle.max())
+    assert shift.max() <= min(10.0, 2 * src_shift.max()), (shift.max(), int(shift.argmax()), src_shift.max())
+    # and it scores like the solved frames
+    assert coherent.summary["contact_distance_median_mm"] <= 1.1 * coherent.summary[
+        "solved_contact_distance_median_mm"], coherent.summary
+    # without the pass the spline cuts across the flips: the checks above fail there
+    bad_angle, bad_shift = root_steps(target, alone.sampled())
+    assert bad_angle.max() > 10.0 or bad_shift.max() > min(10.0, 2 * src_shift.max()), (bad_angle.max(),
+                                                                                         bad_shift.max())
+
+
+def test_root_angles_made_continuous_keep_every_pose(demo_rigs):
+    """Euler triples in other charts (whole turns, (a + pi, pi - b, c + pi)) come back nearest
+    the frame before, each frame's root rotation unchanged (known answer: the same matrices)."""
+    rig = demo_rigs["source_human"]
+    idx = [rig.dof_index(n) for n in ("root_rx", "root_ry", "root_rz")]
+    t = np.linspace(0, 1, 30)
+    q = np.repeat(rig.rest_pose[None], len(t), axis=0)
+    q[:, idx[0]] = 0.3 + 0.5 * t
+    q[:, idx[1]] = 1.45 + 0.25 * t  # through b = 90 degrees (gimbal lock) and beyond
+    q[:, idx[2]] = -0.4 + 0.3 * t
+    charts = q.copy()
+    charts[5:12, idx] = np.stack([q[5:12, idx[0]] + np.pi, np.pi - q[5:12, idx[1]], q[5:12, idx[2]] - np.pi], 1)
+    charts[15:20, idx[2]] += 2 * np.pi
+    charts[22:, idx[0]] -= 2 * np.pi
+    kin = rig.kinematics()
+    for a, b in zip(q, charts):  # the same rotations written differently
+        np.testing.assert_allclose(kin.pose(a).world[0], kin.pose(b).world[0], atol=1e-12)
+    fixed = continuous_root_angles(rig, charts)
+    np.testing.assert_allclose(fixed, q, atol=1e-12)
+    for a, b in zip(q, fixed):
+        np.testing.assert_allclose(kin.pose(a).world[0], kin.pose(b).world[0], atol=1e-12)
+    # a single frame has nothing to follow: it comes back as it was
+    np.testing.assert_array_equal(continuous_root_angles(rig, charts[5:6]), charts[5:6])
