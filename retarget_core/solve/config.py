@@ -369,8 +369,9 @@ class Fit:
 
 @dataclass
 class Passes:
-    """Which pipeline stages run: root-only pass, full-pose pass, coherence pass (frames that
-    left their neighbours' branch re-solved from it, kept when better), filtering pass,
+    """Which pipeline stages run: root-only pass, full-pose pass, coherence pass (each
+    stretch between jumps traced across the clip, one branch kept per frame by the path with
+    the fewest jumps; pipeline.coherence_pass), filtering pass,
     acceleration refinement, spline fit."""
 
     root: bool = True
@@ -583,7 +584,7 @@ def _default() -> RetargetConfig:
     # a bounded marker pull: markers a hand of other proportions cannot meet stop fighting the contacts
     cfg.markers.distance = "huber"
     cfg.markers.huber_width = 0.2
-    # frames that left their neighbours' branch re-solved from it (pipeline.coherence_pass)
+    # the solved frames' path through the root branches with the fewest jumps (pipeline.coherence_pass)
     cfg.passes.coherence = True
     return cfg
 
