@@ -465,11 +465,15 @@ def refinement(runner: FrameRunner, q: np.ndarray, rig: Rig, fps: float, config:
     """Paper "Trajectory Refinement": frames violating E_acc are replaced per DOF by interpolation
     and re-solved toward it, until none is left or the iterations run out."""
     ref = config.refinement
+    rounds = []
 
     def resolve(frames, seeds):
         out = np.array(seeds, dtype=np.float64)
         index = {int(f): i for i, f in enumerate(frames)}
-        for f, qf, _, error in runner.solve(frames, seeds, stage="fingers", keyed=True, label="refinement"):
+        rounds.append(len(frames))
+        # each round counts its own frames up: progress names the round after the first
+        label = "refinement" if len(rounds) == 1 else f"refinement round {len(rounds)}"
+        for f, qf, _, error in runner.solve(frames, seeds, stage="fingers", keyed=True, label=label):
             if not error:
                 out[index[f]] = qf
         return out

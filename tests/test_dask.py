@@ -99,7 +99,8 @@ def _checked_progress(calls):
         assert done == sorted(done) and 0 <= done[0] and done[-1] <= total, stage
         # the frame stages report a finished chunk each time; the executor now also announces
         # the other stages of the whole run (transfer, spline fit) with a (stage, 0, 1) start
-        assert done[0] > 0 if stage in FRAME_STAGES else done[0] == 0, (stage, done)
+        frame_stage = stage.split(" round ")[0] in FRAME_STAGES  # refinement rounds after the first are named
+        assert done[0] > 0 if frame_stage else done[0] == 0, (stage, done)
     return by_stage
 
 
