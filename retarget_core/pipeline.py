@@ -377,8 +377,7 @@ def coherence_pass(runner: FrameRunner, problem: Problem, q: np.ndarray):
     own = q.copy()
     q = q.copy()
     report = CoherenceReport(0)
-    points = target_marker_points(problem, q)
-    jumps = branch_jumps(points, source_points)
+    jumps = branch_jumps(target_marker_points(problem, q), source_points)
     report.jumps_before = int(jumps.sum())
     # per frame: candidate poses and their objectives; the frame's own solution first
     poses = [[qf] for qf in q]
@@ -388,8 +387,9 @@ def coherence_pass(runner: FrameRunner, problem: Problem, q: np.ndarray):
         if not jumps.any():
             break
         runner.executor.report("coherence", round_, COHERENCE_ROUNDS)
-        runs = branch_runs(jumps, 1) + branch_runs(jumps, -1)
-        seeds = [q[r[0] - 1] for r in branch_runs(jumps, 1)] + [q[r[0] + 1] for r in branch_runs(jumps, -1)]
+        forward, backward = branch_runs(jumps, 1), branch_runs(jumps, -1)
+        runs = forward + backward
+        seeds = [q[r[0] - 1] for r in forward] + [q[r[0] + 1] for r in backward]
         for f, qf, value, own_value, evals, error in runner.trace_branches(runs, seeds, [q[r] for r in runs]):
             report.frames += 1
             report.evaluations += evals
