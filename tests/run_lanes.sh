@@ -4,8 +4,9 @@
 #            CPU-heavy core files (MOVED below) and then the Blender add-in's tests (real bpy,
 #            its own venv)
 #   core:    every other test
-# The split keeps the lanes about even (CI of b77d0f2: service 907 s, core 1348 s, Blender
-# 169 s run after the core lane, 1786 s in all): the run lasts as long as its longest lane.
+# The run lasts as long as its longest lane, so the split keeps them about even. With the
+# Blender tests after the core lane (CI of b77d0f2): service 907 s, core 1348 + 169 s, 1786 s
+# in all; split as here (6de4fb5): service 1114 + 193 s, core 1266 s, 1391 s in all.
 # Each lane has its own pytest base temp; both logs are printed when both are done, and the
 # suite fails when either lane fails or collects nothing (pytest exits 5 then).
 # Usage (what `make test` runs): tests/run_lanes.sh VENV_BIN BLENDER_VENV_BIN
