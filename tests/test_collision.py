@@ -149,6 +149,45 @@ def test_object_term_gradient_and_jacobian_match_finite_differences(hand, rng):
     assert term.binding is None and term.missed(kin.pose(q), pose)
 
 
+def test_focus_culls_only_what_reads_far(hand, rng):
+    """The focus skips points and part pairs by bounding spheres before any grid query: on
+    random poses and object placements it picks exactly the points a query of every point
+    would (distance under FOCUS_MARGIN), and missed() agrees with a query of every point."""
+    from retarget_core.solve.collision import FOCUS_MARGIN
+
+    rig, kin = hand
+    bar = trimesh.creation.box(extents=(0.12, 0.03, 0.03))  # long: its grid's sphere is loose
+    obj = ObjectCollision(kin, bar.vertices, bar.faces, stride=3)
+    parts = SelfCollision(kin, samples=40)
+    centre = kin.skin(rig.rest_pose).mean(axis=0)
+    seen_object = seen_items = 0
+    for _ in range(6):
+        q = rig.lower + (rig.upper - rig.lower) * rng.uniform(size=rig.n_dofs)
+        root = [d.joint == 0 for d in rig.dofs]
+        q[root] = rig.rest_pose[root]
+        pose = kin.pose(q)
+        place = np.eye(4)
+        place[:3, :3] = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        place[:3, 3] = centre + rng.normal(scale=0.03, size=3)
+        obj.focus(pose, place)
+        d, _ = obj._sdf(kin.points(pose, obj.all), place)
+        assert np.array_equal(obj.focused, np.flatnonzero(d < FOCUS_MARGIN))
+        seen_object += len(obj.focused)
+        parts.focus(pose)
+        items = np.arange(parts.n_items)
+        d, _, _, _ = parts._sdf(pose, kin.points(pose, parts.all)[parts.item_point], items)
+        assert np.array_equal(parts.focused, np.flatnonzero(d < FOCUS_MARGIN))
+        seen_items += len(parts.focused)
+        # focused at one pose, checked at another: missed() is a query of the left-out points
+        other = kin.pose(rig.lower + (rig.upper - rig.lower) * rng.uniform(size=rig.n_dofs))
+        d, _ = obj._sdf(kin.points(other, obj.all), place)
+        left = np.setdiff1d(np.arange(len(obj.vertices)), obj.focused)
+        assert obj.missed(other, place) == bool(np.any(d[left] < 0))
+        d, _, _, _ = parts._sdf(other, kin.points(other, parts.all)[parts.item_point], items)
+        assert parts.missed(other) == bool(np.any(d[np.setdiff1d(items, parts.focused)] < 0))
+    assert seen_object > 0 and seen_items > 0  # the poses did bring points near
+
+
 def test_a_frame_solve_pulls_crossed_fingers_apart(hand, rng):
     """Fingers driven into each other within their limits, then solved on the self collision
     term alone: the exact overlap of the parts (mesh booleans) falls to a small part of it. (A

@@ -11,6 +11,7 @@ their mesh, and the terms only act inside a mesh.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -62,37 +63,64 @@ class SdfGrids:
     def n_grids(self) -> int:
         return len(self.offsets)
 
+    @cached_property
+    def _tables(self):
+        """Per grid, what every query needs: 1 / spacing (G,), the last cell index (G, 3),
+        the C-order strides (G, 3) and the flat offsets of a cell's 8 corners (G, 8), x-major
+        (dx * sx + dy * sy + dz). Built once per process (a query is called thousands of times
+        per frame solve on a few points each: per-call work dominates)."""
+        shapes = self.shapes.astype(np.int64)
+        strides = np.stack([shapes[:, 1] * shapes[:, 2], shapes[:, 2], np.ones(len(shapes), np.int64)], axis=1)
+        corners = np.stack([dx * strides[:, 0] + dy * strides[:, 1] + dz
+                            for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)], axis=1)
+        return 1.0 / self.spacing, (shapes - 2).astype(np.float64), strides, corners
+
     def query(self, points: np.ndarray, grid: np.ndarray | int = 0):
         """Trilinear signed distance (P,) m and its gradient (P, 3) at points (P, 3) given in
         the frame of grid ``grid`` (an int or (P,) ids). Outside the grid: FAR and 0."""
         p = np.asarray(points, dtype=np.float64)
-        g = np.broadcast_to(np.asarray(grid, dtype=np.int64), (len(p),))
-        h = self.spacing[g][:, None]
-        u = (p - self.origins[g]) / h
-        shape = self.shapes[g]
-        cell = np.floor(u).astype(np.int64)
-        inside = np.all((cell >= 0) & (cell < shape - 1), axis=1)
         d = np.full(len(p), FAR)
         grad = np.zeros((len(p), 3))
-        if not inside.any():
+        if not len(p):
             return d, grad
-        c, t, s = cell[inside], u[inside] - cell[inside], shape[inside]
-        sy, sz = s[:, 2], s[:, 1] * s[:, 2]
-        first = self.offsets[g[inside]] + c[:, 0] * sz + c[:, 1] * sy + c[:, 2]
-        # the 8 corners in one gather: x-major offsets (dx * sz + dy * sy + dz)
-        corner = np.stack([dx * sz + dy * sy + dz for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)], axis=1)
-        v000, v001, v010, v011, v100, v101, v110, v111 = self.values[first[:, None] + corner].T
-        tx, ty, tz = t[:, 0], t[:, 1], t[:, 2]
+        inv_h, last, strides, corners = self._tables
+        many = np.ndim(grid) > 0
+        g = np.asarray(grid, dtype=np.int64)
+        if many:
+            u = (p - self.origins[g]) * inv_h[g][:, None]
+            cell = np.floor(u)
+            keep = np.flatnonzero(((cell >= 0) & (cell <= last[g])).all(axis=1))
+            if not len(keep):
+                return d, grad
+            gk = g[keep]
+            c = cell[keep]
+            first = self.offsets[gk] + np.einsum("ka,ka->k", c.astype(np.int64), strides[gk])
+            v = self.values[first[:, None] + corners[gk]]
+            scale = inv_h[gk][:, None]
+        else:
+            u = (p - self.origins[g]) * inv_h[g]
+            cell = np.floor(u)
+            keep = np.flatnonzero(((cell >= 0) & (cell <= last[g])).all(axis=1))
+            if not len(keep):
+                return d, grad
+            c = cell[keep]
+            first = self.offsets[g] + c.astype(np.int64) @ strides[g]
+            v = self.values[first[:, None] + corners[g]]
+            scale = inv_h[g]
+        t = u[keep] - c
+        v000, v001, v010, v011, v100, v101, v110, v111 = v.T
+        tx, ty, tz = t.T
         # along x, then y, then z; the gradient is the interpolant's own (exact for it)
-        x00, x10 = v000 + tx * (v100 - v000), v010 + tx * (v110 - v010)
-        x01, x11 = v001 + tx * (v101 - v001), v011 + tx * (v111 - v011)
-        y0, y1 = x00 + ty * (x10 - x00), x01 + ty * (x11 - x01)
-        d[inside] = y0 + tz * (y1 - y0)
         dx00, dx10, dx01, dx11 = v100 - v000, v110 - v010, v101 - v001, v111 - v011
+        x00, x10 = v000 + tx * dx00, v010 + tx * dx10
+        x01, x11 = v001 + tx * dx01, v011 + tx * dx11
+        y0, y1 = x00 + ty * (x10 - x00), x01 + ty * (x11 - x01)
+        d[keep] = y0 + tz * (y1 - y0)
         gx0 = dx00 + ty * (dx10 - dx00)
         gx1 = dx01 + ty * (dx11 - dx01)
-        gx = gx0 + tz * (gx1 - gx0)
-        gy = (1 - tz) * (x10 - x00) + tz * (x11 - x01)
-        gz = y1 - y0
-        grad[inside] = np.stack([gx, gy, gz], axis=1) / h[inside]
+        out = np.empty((len(keep), 3))
+        out[:, 0] = gx0 + tz * (gx1 - gx0)
+        out[:, 1] = (1 - tz) * (x10 - x00) + tz * (x11 - x01)
+        out[:, 2] = y1 - y0
+        grad[keep] = out * scale
         return d, grad

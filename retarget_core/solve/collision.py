@@ -68,6 +68,13 @@ def part_grids(kin, parts) -> SdfGrids:
     return SdfGrids.of_meshes(meshes, PART_SPACING, PART_MARGIN)
 
 
+def grid_spheres(grids: SdfGrids):
+    """Per grid, the sphere around its box in the grid's frame: centres (G, 3) m, radii (G,) m.
+    Outside it a query reads FAR, so a point there needs no query."""
+    half = (grids.shapes - 1) * grids.spacing[:, None] / 2
+    return grids.origins + half, np.linalg.norm(half, axis=1)
+
+
 def _digest(*arrays) -> str:
     h = hashlib.sha1()
     for a in arrays:
@@ -130,6 +137,13 @@ class ObjectCollision:
         self.all = kin.bind(SurfacePoints.from_vertices(self.vertices, surface.faces))
         self.focused = np.arange(len(self.vertices))
         self.binding = self.all
+        self.centre, self.radius = grid_spheres(self.grids)
+
+    def _near(self, points: np.ndarray, object_pose: np.ndarray) -> np.ndarray:
+        """Ids of the points (P, 3) world within the sphere around the object's grid (the
+        others read FAR there: a few flops each instead of a grid query)."""
+        c = object_pose[:3, :3] @ self.centre[0] + object_pose[:3, 3]
+        return np.flatnonzero(np.einsum("pa,pa->p", points - c, points - c) <= self.radius[0] ** 2)
 
     def _sdf(self, points: np.ndarray, object_pose: np.ndarray):
         inv = np.linalg.inv(object_pose)
@@ -137,19 +151,22 @@ class ObjectCollision:
         return d, g @ inv[:3, :3]  # the gradient in world
 
     def focus(self, pose, object_pose: np.ndarray) -> None:
-        d, _ = self._sdf(self.kin.points(pose, self.all), object_pose)
-        self.focused = np.flatnonzero(d < FOCUS_MARGIN)
-        self.binding = (self.kin.bind(SurfacePoints.from_vertices(self.vertices[self.focused], self.kin.rig.surface.faces))
-                        if len(self.focused) else None)
+        x = self.kin.points(pose, self.all)
+        near = self._near(x, object_pose)
+        d, _ = self._sdf(x[near], object_pose)
+        self.focused = near[d < FOCUS_MARGIN]
+        self.binding = self.all.subset(self.focused) if len(self.focused) else None
 
     def missed(self, pose, object_pose: np.ndarray) -> bool:
         """True when a sample point left out by :meth:`focus` is inside the object at pose."""
         if len(self.focused) == len(self.vertices):
             return False
-        d, _ = self._sdf(self.kin.points(pose, self.all), object_pose)
-        out = np.ones(len(d), bool)
+        x = self.kin.points(pose, self.all)
+        out = np.ones(len(x), bool)
         out[self.focused] = False
-        return bool(np.any(d[out] < 0))
+        near = np.intersect1d(self._near(x, object_pose), np.flatnonzero(out), assume_unique=True)
+        d, _ = self._sdf(x[near], object_pose)
+        return bool(np.any(d < 0))
 
     def value_and_cot(self, pose, object_pose, weight: float):
         """(value, points (K, 3), cotangent (K, 3)) of lambda * G_P at the focused points."""
@@ -217,6 +234,8 @@ class SelfCollision:
                 gr.append(np.full(len(ids), far))
         self.item_point = np.concatenate(pt) if pt else np.zeros(0, np.int64)
         self.item_grid = np.concatenate(gr) if gr else np.zeros(0, np.int64)
+        self.item_owner = self.owner[self.item_point]
+        self.grid_centre, self.grid_radius = grid_spheres(self.grids)
         self._focus_items(np.arange(len(self.item_point)))
 
     def _focus_items(self, items: np.ndarray) -> None:
@@ -238,20 +257,38 @@ class SelfCollision:
         d, g = self.grids.query(local, self.item_grid[items])
         return d, np.einsum("kab,kb->ka", world[:, :3, :3], g), x, joint
 
+    def _near_items(self, pose, x: np.ndarray) -> np.ndarray:
+        """Ids of the items whose two parts may touch at pose: the sphere around a part's posed
+        sample points x (N, 3) meets the sphere around the other part's grid (rigid in its
+        joint's frame). The others read FAR: most pairs of a hand are far apart."""
+        n = self.parts.n_parts
+        count = np.bincount(self.owner, minlength=n).astype(np.float64)
+        centre = np.stack([np.bincount(self.owner, x[:, a], minlength=n) for a in range(3)], axis=1)
+        centre /= np.maximum(count, 1.0)[:, None]
+        radius = np.zeros(n)
+        np.maximum.at(radius, self.owner, np.linalg.norm(x - centre[self.owner], axis=1))
+        world = pose.world[self.part_joint]  # (P, 4, 4)
+        grid_centre = np.einsum("pab,pb->pa", world[:, :3, :3], self.grid_centre) + world[:, :3, 3]
+        gap = np.linalg.norm(centre[:, None, :] - grid_centre[None, :, :], axis=2)  # (P, P)
+        near = gap <= radius[:, None] + self.grid_radius[None, :]
+        return np.flatnonzero(near[self.item_owner, self.item_grid])
+
     def focus(self, pose) -> None:
         if not self.n_items:
             return
         pose = self.kin._as_pose(pose)
-        items = np.arange(self.n_items)
-        d, _, _, _ = self._sdf(pose, self.kin.points(pose, self.all)[self.item_point], items)
-        self._focus_items(np.flatnonzero(d < FOCUS_MARGIN))
+        x = self.kin.points(pose, self.all)
+        items = self._near_items(pose, x)
+        d, _, _, _ = self._sdf(pose, x[self.item_point[items]], items)
+        self._focus_items(items[d < FOCUS_MARGIN])
 
     def missed(self, pose) -> bool:
         if len(self.focused) == self.n_items:
             return False
         pose = self.kin._as_pose(pose)
-        rest = np.setdiff1d(np.arange(self.n_items), self.focused)
-        d, _, _, _ = self._sdf(pose, self.kin.points(pose, self.all)[self.item_point[rest]], rest)
+        x = self.kin.points(pose, self.all)
+        rest = np.setdiff1d(self._near_items(pose, x), self.focused, assume_unique=True)
+        d, _, _, _ = self._sdf(pose, x[self.item_point[rest]], rest)
         return bool(np.any(d < 0))
 
     def value_and_grad(self, pose, weight: float, want_grad: bool):

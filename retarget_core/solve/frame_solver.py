@@ -58,6 +58,9 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
     objective.set_seed(base)
     if warm_start_iterations > 0:
         base = gauss_newton_warm_start(objective, base, lower, upper, active, warm_start_iterations, coupling)
+        # the warm start moves the fingers the most (from rest to the grasp): the points near the
+        # table, the object or another part are picked again where MMA starts
+        objective.focus_samples(base)
     n = int(active.sum())
     best = {"value": np.inf, "q": base.copy()}
     start_evals = objective.evaluations

@@ -138,8 +138,7 @@ class FrameObjective:
             return
         s = self.kin.points(pose, self.all_samples)
         near = box_signed_distance(s, *self.table) < margin
-        self.sample_binding = (self.kin.bind(SurfacePoints.from_vertices(self.sample_vertices[near], self.rig.surface.faces))
-                               if near.any() else None)
+        self.sample_binding = self.all_samples.subset(np.flatnonzero(near)) if near.any() else None
 
     def unseen_collision(self, q: np.ndarray) -> bool:
         """True when, at q (D,), a sample point left out by :meth:`focus_samples` is inside the
