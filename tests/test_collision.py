@@ -188,6 +188,43 @@ def test_focus_culls_only_what_reads_far(hand, rng):
     assert seen_object > 0 and seen_items > 0  # the poses did bring points near
 
 
+def test_whole_value_is_the_focused_objective_at_the_same_pose(hand, rng):
+    """FrameObjective.whole_value (one-off values: a frame scored, the polish's trial steps)
+    gives what focus_samples at q then value_and_grad give, table and both collision terms
+    included, on poses with points inside the table, the object and another part."""
+    from retarget_core.mesh.surface_points import SurfacePoints
+    from retarget_core.solve.config import RetargetConfig
+    from retarget_core.solve.objective import FrameData, FrameObjective
+
+    rig, kin = hand
+    v = kin.skin(rig.rest_pose)
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.02)
+    place = np.eye(4)
+    place[:3, 3] = v.mean(axis=0)
+    table = np.eye(4)
+    table[2, 3] = v[:, 2].min() + 0.003 - 0.05  # the hand's lowest 3 mm in a 10 cm slab
+    cfg = RetargetConfig.preset("default")
+    cfg.weights.lambda_p = cfg.weights.lambda_sc = 10.0
+    faces = rng.integers(0, len(rig.surface.faces), 6)
+    bary = rng.dirichlet(np.ones(3), 6)
+    objective = FrameObjective(rig, cfg, faces[:3], bary[:3], np.arange(3), np.ones(3) / 3, table_pose=table,
+                               table_half_extents=np.array([0.3, 0.3, 0.05]), object_vertices=ball.vertices,
+                               object_faces=ball.faces)
+    markers = kin.points(rig.rest_pose, kin.bind(SurfacePoints(faces[:3], bary[:3]))) + 0.01
+    contacts = SurfacePoints(faces[3:], bary[3:])
+    objective.set_frame(FrameData(markers, contacts, v[:3], np.tile([0.0, 0.0, 1.0], (3, 1)), place))
+    terms = set()
+    for q in [rig.rest_pose, _crossed_fingers(rig)] + [rig.rest_pose + rng.normal(scale=0.2, size=rig.n_dofs)
+                                                        for _ in range(3)]:
+        objective.focus_samples(q)
+        focused, _ = objective.value_and_grad(q, want_grad=False)
+        assert objective.whole_value(q) == pytest.approx(focused, rel=1e-12)
+        pose = kin.pose(q)
+        terms |= {name for name, on in (("object", objective.object_collision.whole_value(pose, place, 1.0) > 0),
+                                        ("self", objective.self_collision.whole_value(pose, 1.0) > 0)) if on}
+    assert terms == {"object", "self"}
+
+
 def test_a_frame_solve_pulls_crossed_fingers_apart(hand, rng):
     """Fingers driven into each other within their limits, then solved on the self collision
     term alone: the exact overlap of the parts (mesh booleans) falls to a small part of it. (A

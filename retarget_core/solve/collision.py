@@ -150,10 +150,16 @@ class ObjectCollision:
         d, g = self.grids.query(points @ inv[:3, :3].T + inv[:3, 3])
         return d, g @ inv[:3, :3]  # the gradient in world
 
-    def focus(self, pose, object_pose: np.ndarray) -> None:
+    def _near_distances(self, pose, object_pose: np.ndarray):
+        """(ids (K,), signed distances (K,) m) of the sample points near the object at pose;
+        the others are farther than the grid reaches."""
         x = self.kin.points(pose, self.all)
         near = self._near(x, object_pose)
         d, _ = self._sdf(x[near], object_pose)
+        return near, d
+
+    def focus(self, pose, object_pose: np.ndarray) -> None:
+        near, d = self._near_distances(pose, object_pose)
         self.focused = near[d < FOCUS_MARGIN]
         self.binding = self.all.subset(self.focused) if len(self.focused) else None
 
@@ -167,6 +173,13 @@ class ObjectCollision:
         near = np.intersect1d(self._near(x, object_pose), np.flatnonzero(out), assume_unique=True)
         d, _ = self._sdf(x[near], object_pose)
         return bool(np.any(d < 0))
+
+    def whole_value(self, pose, object_pose: np.ndarray, weight: float) -> float:
+        """lambda * G_P over every sample point at pose (no focus needed): what
+        :meth:`focus` at pose then :meth:`value_and_cot` give, in one grid query."""
+        _, d = self._near_distances(pose, object_pose)
+        pen = np.maximum(-d, 0.0) * MM
+        return weight * float(pen @ pen)
 
     def value_and_cot(self, pose, object_pose, weight: float):
         """(value, points (K, 3), cotangent (K, 3)) of lambda * G_P at the focused points."""
@@ -273,14 +286,26 @@ class SelfCollision:
         near = gap <= radius[:, None] + self.grid_radius[None, :]
         return np.flatnonzero(near[self.item_owner, self.item_grid])
 
-    def focus(self, pose) -> None:
-        if not self.n_items:
-            return
-        pose = self.kin._as_pose(pose)
+    def _near_distances(self, pose):
+        """(items (K,), signed distances (K,) m) of the items whose parts may touch at pose."""
         x = self.kin.points(pose, self.all)
         items = self._near_items(pose, x)
         d, _, _, _ = self._sdf(pose, x[self.item_point[items]], items)
+        return items, d
+
+    def focus(self, pose) -> None:
+        if not self.n_items:
+            return
+        items, d = self._near_distances(self.kin._as_pose(pose))
         self._focus_items(items[d < FOCUS_MARGIN])
+
+    def whole_value(self, pose, weight: float) -> float:
+        """lambda * G_SC over every item at pose (no focus needed), in one grid query."""
+        if not self.n_items:
+            return 0.0
+        _, d = self._near_distances(self.kin._as_pose(pose))
+        pen = np.maximum(-d, 0.0) * MM
+        return weight * float(pen @ pen)
 
     def missed(self, pose) -> bool:
         if len(self.focused) == self.n_items:

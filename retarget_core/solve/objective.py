@@ -157,6 +157,23 @@ class FrameObjective:
         return inside_all > int((box_signed_distance(self.kin.points(pose, self.sample_binding), *self.table) < 0).sum())
 
     # ---- the terms -----------------------------------------------------------------------------
+    def whole_value(self, q: np.ndarray) -> float:
+        """E(q) over every sample point, as :meth:`focus_samples` at q then :meth:`value_and_grad`
+        give it, without building the focused sets: for one-off values (a frame scored at a
+        pose, the polish's trial steps), where the focus would cost as much as the value."""
+        focused = self.sample_binding, self.object_collision, self.self_collision
+        self.sample_binding, self.object_collision, self.self_collision = self.all_samples, None, None
+        try:
+            value, _ = self.value_and_grad(q, want_grad=False)
+        finally:
+            self.sample_binding, self.object_collision, self.self_collision = focused
+        pose = self.kin.pose(q)
+        if self.object_collision is not None and self.frame.object_pose is not None:
+            value += self.object_collision.whole_value(pose, self.frame.object_pose, self.w.lambda_p)
+        if self.self_collision is not None:
+            value += self.self_collision.whole_value(pose, self.w.lambda_sc)
+        return value
+
     def value_and_grad(self, q: np.ndarray, want_grad: bool = True):
         """(E, dE/dq (D,)) at q (D,)."""
         self.evaluations += 1

@@ -197,9 +197,7 @@ def frame_value(state: dict, frame: int, q: np.ndarray, stage: str = "fingers") 
     objective.set_frame(problem.frame_data(int(frame)))
     objective.reference = problem.rig.rest_pose
     objective.set_seed(np.asarray(q, dtype=np.float64))
-    objective.focus_samples(q)
-    value, _ = objective.value_and_grad(np.asarray(q, dtype=np.float64), want_grad=False)
-    return float(value)
+    return float(objective.whole_value(np.asarray(q, dtype=np.float64)))
 
 
 def trace_branch(state: dict, frames, seed, current, gap: float = JUMP_MIN_SHIFT) -> list:
@@ -233,6 +231,7 @@ def frame_systems(state: dict, frames, qs) -> list:
     out = []
     for f, q in zip(frames, qs):
         value = frame_value(state, int(f), q)
+        objective.focus_samples(q)
         cost, g, h = objective.normal_equations(np.asarray(q, dtype=np.float64))
         out.append((int(f), value, cost, g, h))
     return out
