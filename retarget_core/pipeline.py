@@ -38,10 +38,11 @@ from .result import RetargetResult
 from .rig.anatomy import continuous_root_angles, set_root_transform
 from .rig.hand_cut import surface_matches_hand
 from .rig.model import Rig
+from .mesh.geometry import rigid_fit
 from .solve.collision import collision_grids
 from .solve.config import MIN_CONTROL_POINTS, RetargetConfig
 from .solve.problem import Problem, method_objective, unused_settings
-from .solve.targets import contact_targets, marker_targets, scale_finger_markers
+from .solve.targets import contact_targets, marker_targets, proportion_weights, scale_finger_markers
 from .transfer.annotations import DEFAULT_MAX_DISPLACEMENT, remap_to_meshes
 from .transfer.clip_transfer import transfer_clip
 
@@ -174,6 +175,8 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
     timings["total"] = time.perf_counter() - start
     counts = run_counts(reports)
     counts["fit"] = fit_report
+    if markers.proportion:
+        counts["marker_weights"] = markers.proportion
     contact_frames = count > 0
     summary = {
         "frames": clip.n_frames, "dofs": target.n_dofs, "control_points": n_control if curves else None,
@@ -254,6 +257,8 @@ def build_problem(clip: Clip, pairs: ContactPairs, source: Rig, target: Rig, ann
     markers = marker_targets(clip, source, target, annotations)
     if config.markers.scale_fingers:
         markers = scale_finger_markers(markers, source, target)
+    if config.markers.proportion_width > 0:
+        markers = proportion_weights(markers, source, target, config.markers.proportion_width_si)
     contacts = contact_targets(clip, pairs, transferred.contacts, keep_source_gap=config.contacts.keep_source_gap)
     if len(markers.pair_target) < 3:
         raise InputError("at least three marker pairs are needed to place the hand", element="markers")
@@ -281,19 +286,6 @@ def root_segments(n_frames: int) -> list[np.ndarray]:
     return [np.arange(s, min(s + ROOT_SEGMENT_FRAMES, n_frames)) for s in range(0, n_frames, ROOT_SEGMENT_FRAMES)]
 
 
-def kabsch(source: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """Rigid transform (4, 4) moving points ``source`` (N, 3) onto ``target`` (N, 3)."""
-    cs, ct = source.mean(axis=0), target.mean(axis=0)
-    h = (source - cs).T @ (target - ct)
-    u, _, vt = np.linalg.svd(h)
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    r = vt.T @ np.diag([1, 1, d]) @ u.T
-    m = np.eye(4)
-    m[:3, :3] = r
-    m[:3, 3] = ct - r @ cs
-    return m
-
-
 def root_pass(runner: FrameRunner, problem: Problem, clip: Clip, config: RetargetConfig):
     """Paper: "we first solve for only root joint position per frame while keeping the remaining
     joints fixed in their default positions", each frame seeded from the previous one. Each run
@@ -307,7 +299,7 @@ def root_pass(runner: FrameRunner, problem: Problem, clip: Clip, config: Retarge
     rest_markers = kin.points(rest, kin.bind(SurfacePoints(markers.target_faces, markers.target_barycentric)))
     root_now = kin.pose(rest).world[0]
     segments = root_segments(clip.n_frames)
-    seeds = [set_root_transform(target, rest, kabsch(rest_markers[markers.pair_target],
+    seeds = [set_root_transform(target, rest, rigid_fit(rest_markers[markers.pair_target],
                                                      markers.source_positions[s[0]]) @ root_now) for s in segments]
     q = np.concatenate([np.repeat(seed[None], len(s), axis=0) for s, seed in zip(segments, seeds)])
     report = PassReport(clip.n_frames)

@@ -89,15 +89,29 @@ def contact_distance_per_frame(kinematics, q: np.ndarray, contacts) -> tuple[np.
     return median_per_frame_mm(contact_distances(kinematics, q, contacts), contacts.frame_offsets)
 
 
+def marker_figure_weights(markers) -> np.ndarray:
+    """(Np,) weights summing to 1 under which every marker counts once (1 / K for each pair of a
+    marker of K pairs), whatever weights the solve gave the markers (``proportion_weights``):
+    the figure measures all markers, not the ones the solve was asked to favour."""
+    names = getattr(markers, "names", None)
+    if names is not None and len(names) == len(markers.pair_target):
+        _, of, count = np.unique(np.asarray(names, dtype=str), return_inverse=True, return_counts=True)
+        weight = 1.0 / count[of]
+    else:
+        weight = np.asarray(markers.pair_weight, dtype=np.float64)
+    return weight / weight.sum()
+
+
 def marker_error_per_frame(kinematics, q: np.ndarray, markers) -> np.ndarray:
-    """Per frame at the poses q (T, D): the marker error (T,) mm, the pair-weighted mean
-    distance between the posed target marker points and the source markers (weights
-    normalised to sum 1, so a marker of K pairs counts once); NaN for every frame when there
-    are no marker pairs.
+    """Per frame at the poses q (T, D): the marker error (T,) mm, the mean distance between
+    the posed target marker points and the source markers with every marker counting once
+    (:func:`marker_figure_weights`: a marker of K pairs weighs each 1/K, whatever weights the
+    solve used); NaN for every frame when there are no marker pairs.
 
     markers: a :class:`~retarget_core.solve.targets.MarkerTargets` (or any object with
     ``target_faces`` (Mt,), ``target_barycentric`` (Mt, 3), ``pair_target`` (Np,) into them,
-    ``pair_weight`` (Np,) and ``source_positions`` (T, Np, 3) world metres)."""
+    ``pair_weight`` (Np,), optionally ``names`` (Np,), and ``source_positions`` (T, Np, 3)
+    world metres)."""
     q = np.asarray(q, dtype=np.float64)
     marker = np.full(len(q), np.nan)
     if not len(markers.pair_target):
@@ -106,7 +120,7 @@ def marker_error_per_frame(kinematics, q: np.ndarray, markers) -> np.ndarray:
         raise InputError(f"source markers have {len(markers.source_positions)} frames, q has {len(q)}",
                          element="source_positions")
     binding = kinematics.bind(SurfacePoints(markers.target_faces, markers.target_barycentric))
-    weight = markers.pair_weight / markers.pair_weight.sum()
+    weight = marker_figure_weights(markers)
     for f in range(len(q)):
         x = kinematics.points(kinematics.pose(q[f]), binding)[markers.pair_target]
         marker[f] = _MM * float(weight @ np.linalg.norm(x - markers.source_positions[f], axis=1))

@@ -103,3 +103,16 @@ def box_signed_distance_and_gradient(points: np.ndarray, pose: np.ndarray, half_
     grad_local *= np.sign(local) + (local == 0)
     return sdf, grad_local @ rot.T
 
+
+def rigid_fit(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """The rigid transform (4, 4) moving points ``source`` (N, 3) onto ``target`` (N, 3) with
+    the least squared distance (Kabsch; reflections excluded)."""
+    cs, ct = source.mean(axis=0), target.mean(axis=0)
+    h = (source - cs).T @ (target - ct)
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    r = vt.T @ np.diag([1, 1, d]) @ u.T
+    m = np.eye(4)
+    m[:3, :3] = r
+    m[:3, 3] = ct - r @ cs
+    return m

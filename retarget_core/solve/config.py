@@ -52,6 +52,7 @@ solver.xtol_rel, solver.ftol_rel       [0, 1]
 solver.fd_step                         (0, 1]
 solver.warm_start_iterations           [0, 200]           Gauss-Newton steps per frame
 markers.huber_width                    (0, 100]           cm
+markers.proportion_width               [0, 100]           cm (0 = off)
 refinement.e_acc_angular               (0, 1e7]           deg/s^2
 refinement.e_acc_linear                (0, 1e7]           cm/s^2
 refinement.max_iterations              [0, 200]           rounds
@@ -150,6 +151,7 @@ BOUNDS: dict[str, tuple[float, float, bool]] = {
     "solver.fd_step": (0.0, 1.0, True),
     "solver.warm_start_iterations": (0, 200, False),
     "markers.huber_width": (0.0, 100.0, True),              # cm
+    "markers.proportion_width": (0.0, 100.0, False),        # cm, 0 = off
     "refinement.e_acc_angular": (0.0, 1e7, True),           # deg/s^2
     "refinement.e_acc_linear": (0.0, 1e7, True),            # cm/s^2
     "refinement.max_iterations": (0, 200, False),
@@ -259,16 +261,29 @@ class Markers:
     Measured on that witch (same run as above): markers met to 3.6 mm instead of 15 mm, but the
     median contact distance rose from 3.40 to 3.95 mm: the contacts carried through the atlas
     (stretched by lambda_a = 1.5 along each finger) want a different pose from the source's
-    angles. With the markers off altogether (lambda_m = 0) the contacts alone reached 2.71 mm."""
+    angles. With the markers off altogether (lambda_m = 0) the contacts alone reached 2.71 mm.
+
+    ``proportion_width`` (cm; 0 = off): weigh each marker by how well the target's proportions
+    can meet it (:func:`retarget_core.solve.targets.proportion_weights`): d, the marker's
+    distance from the source's after a rigid fit of the target's markers at rest onto the
+    source's, gives the weight 1 / (1 + (d / width)^2), the weights rescaled to keep their sum.
+    A hand of the source's proportions keeps nearly even weights; on a hand with a larger palm
+    or longer fingers the markers it cannot meet stop pulling it into the object."""
 
     distance: str = "squared"
     huber_width: float = 0.05
     scale_fingers: bool = False
+    proportion_width: float = 0.0
 
     @property
     def huber_width_si(self) -> float:
         """``huber_width`` in metres."""
         return self.huber_width / 100.0
+
+    @property
+    def proportion_width_si(self) -> float:
+        """``proportion_width`` in metres (0 = off)."""
+        return self.proportion_width / 100.0
 
 
 @dataclass

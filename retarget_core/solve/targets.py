@@ -14,7 +14,7 @@ import numpy as np
 
 from ..clip.format import Clip
 from ..errors import InputError
-from ..mesh.geometry import vertex_normals
+from ..mesh.geometry import rigid_fit, vertex_normals
 from ..mesh.surface_points import SurfacePoints
 from ..pairing.dense import ContactPairs
 from ..rig.hand_cut import surface_matches_hand
@@ -29,7 +29,8 @@ class MarkerTargets:
     pair_target (Np,) index into them; pair_weight (Np,) (1/K for a marker of K pairs, so each
     marker counts once); source_positions (T, Np, 3) metres: the source side of each pair per
     frame; names (Np,) the marker of each pair; source_faces (Np,), source_barycentric (Np, 3): the source
-    side of each pair on the source rig's surface."""
+    side of each pair on the source rig's surface; proportion: per marker, its rest mismatch
+    and weight when weighted by the hand's proportions (:func:`proportion_weights`)."""
 
     target_faces: np.ndarray
     target_barycentric: np.ndarray
@@ -39,6 +40,7 @@ class MarkerTargets:
     names: list
     source_faces: np.ndarray | None = None
     source_barycentric: np.ndarray | None = None
+    proportion: dict = dataclasses.field(default_factory=dict)
 
 
 @dataclass
@@ -177,3 +179,44 @@ def scale_finger_markers(markers: MarkerTargets, source: Rig, target: Rig) -> Ma
         for k, s in enumerate(sel):
             positions[:, s] += (placed[:, k] - src[:, k])[:, None]
     return dataclasses.replace(markers, source_positions=positions)
+
+
+def rest_marker_mismatch(markers: MarkerTargets, source: Rig, target: Rig) -> tuple[list, np.ndarray]:
+    """(marker names (M,), distance (M,) m of each marker from the source's after the rigid fit
+    of the target's markers onto the source's, both hands at rest). A marker's point is its
+    pairs' weighted centroid on each side; the fit weighs every marker once."""
+    if markers.source_faces is None:
+        raise ValueError("marker targets built without their source points")
+    s_kin, t_kin = source.kinematics(), target.kinematics()
+    s_rest = s_kin.points(source.rest_pose, s_kin.bind(SurfacePoints(markers.source_faces, markers.source_barycentric)))
+    t_rest = t_kin.points(target.rest_pose, t_kin.bind(SurfacePoints(markers.target_faces, markers.target_barycentric)))
+    t_rest = t_rest[markers.pair_target]  # (Np, 3), pair by pair like s_rest
+    names = list(dict.fromkeys(markers.names))
+    of = np.array([names.index(n) for n in markers.names])
+    w = markers.pair_weight / np.bincount(of, markers.pair_weight)[of]
+    centroid = np.zeros((2, len(names), 3))
+    for side, x in enumerate((s_rest, t_rest)):
+        for a in range(3):
+            centroid[side, :, a] = np.bincount(of, w * x[:, a], minlength=len(names))
+    fit = rigid_fit(centroid[1], centroid[0])
+    placed = centroid[1] @ fit[:3, :3].T + fit[:3, 3]
+    return names, np.linalg.norm(placed - centroid[0], axis=1)
+
+
+def proportion_weights(markers: MarkerTargets, source: Rig, target: Rig, width: float) -> MarkerTargets:
+    """Markers weighted by the target's proportions (``markers.proportion_width``): a marker d
+    metres from the source's at rest (:func:`rest_marker_mismatch`) has its pairs' weights
+    multiplied by 1 / (1 + (d / width)^2), then all pair weights rescaled to their old sum, so
+    the markers as a whole weigh as before against the contacts and the prior. ``width`` (m).
+    The new targets' ``proportion`` gives {marker: {"rest_mismatch_mm", "weight"}} (result.json)."""
+    if width <= 0 or len(markers.pair_target) == 0:
+        return markers
+    names, d = rest_marker_mismatch(markers, source, target)
+    factor = 1.0 / (1.0 + (d / width) ** 2)
+    of = np.array([names.index(n) for n in markers.names])
+    weight = markers.pair_weight * factor[of]
+    weight *= markers.pair_weight.sum() / weight.sum()
+    per_marker = np.bincount(of, weight, minlength=len(names)) / np.bincount(of, markers.pair_weight, minlength=len(names))
+    report = {n: {"rest_mismatch_mm": round(float(1000 * d[i]), 2), "weight": round(float(per_marker[i]), 4)}
+              for i, n in enumerate(names)}
+    return dataclasses.replace(markers, pair_weight=weight, proportion=report)
