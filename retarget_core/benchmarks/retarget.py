@@ -132,7 +132,7 @@ def run_retarget_benchmark(n_frames: int = 1000, target: str = "human_alt", work
     speed = gradient_speedup(clip, source, target_rig, annotations, RetargetConfig.preset("paper"),
                              n_frames=speedup_frames)
     return {
-        "frames": clip.n_frames, "target": target, "dofs": target_rig.n_dofs,
+        "frames": clip.n_frames, "fps": float(clip.fps), "target": target, "dofs": target_rig.n_dofs,
         "target_vertices": int(target_rig.surface.n_vertices), "workers": int(workers), "preset": preset,
         "setup_seconds": setup_seconds, "timings": result.timings, "peak_memory_bytes": memory.peak,
         "peak_memory_measured": memory.available, "summary": result.summary, "counts": result.counts,

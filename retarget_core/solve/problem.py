@@ -192,12 +192,19 @@ def frame_value(state: dict, frame: int, q: np.ndarray, stage: str = "fingers") 
     """The objective of ``stage`` at pose ``q`` (D,) of ``frame``, with the prior toward the
     rest pose as in the full pass and the root gauge anchored at ``q`` itself (zero there), so
     values from different seeds compare and nothing a worker solved before leaks in."""
+    objective = _frame_at(state, frame, q, stage)
+    return float(objective.whole_value(np.asarray(q, dtype=np.float64)))
+
+
+def _frame_at(state: dict, frame: int, q: np.ndarray, stage: str = "fingers") -> FrameObjective:
+    """``stage``'s objective set to ``frame``, the prior toward the rest pose, the root gauge
+    anchored at q (see :func:`frame_value`)."""
     problem: Problem = state["problem"]
     objective: FrameObjective = state[stage]
     objective.set_frame(problem.frame_data(int(frame)))
     objective.reference = problem.rig.rest_pose
     objective.set_seed(np.asarray(q, dtype=np.float64))
-    return float(objective.whole_value(np.asarray(q, dtype=np.float64)))
+    return objective
 
 
 def trace_branch(state: dict, frames, seed, current, gap: float = JUMP_MIN_SHIFT) -> list:
@@ -227,13 +234,14 @@ def frame_systems(state: dict, frames, qs) -> list:
     Gauss-Newton system of its least-squares form: sum r^2, J^T r (D,), J^T J (D, D)), with
     the prior toward the rest pose as in the full pass. What the polish of the delivered
     curves (fit/polish.py) sums over frames."""
-    objective: FrameObjective = state["fingers"]
     out = []
     for f, q in zip(frames, qs):
-        value = frame_value(state, int(f), q)
-        objective.focus_samples(q)
-        cost, g, h = objective.normal_equations(np.asarray(q, dtype=np.float64))
-        out.append((int(f), value, cost, g, h))
+        q = np.asarray(q, dtype=np.float64)
+        objective = _frame_at(state, f, q)
+        objective.focus_samples(q)  # the system needs the focused sets: the value comes with them
+        value, _ = objective.value_and_grad(q, want_grad=False)
+        cost, g, h = objective.normal_equations(q)
+        out.append((int(f), float(value), cost, g, h))
     return out
 
 
