@@ -30,6 +30,7 @@ from .execute import Executor, FrameRunner
 from .fit.polish import polish_curves
 from .fit.splines import coupled_curves, evaluate_curves, fit_trajectory
 from .inputs import RunInputs, frame_range
+from .mesh.geometry import rigid_fit
 from .mesh.surface_points import SurfacePoints
 from .pairing.dense import ContactPairs, pair_contacts
 from .refine.branches import branch_jumps, branch_runs, choose_branch_path
@@ -38,7 +39,6 @@ from .result import RetargetResult
 from .rig.anatomy import continuous_root_angles, set_root_transform
 from .rig.hand_cut import surface_matches_hand
 from .rig.model import Rig
-from .mesh.geometry import rigid_fit
 from .solve.collision import collision_grids
 from .solve.config import MIN_CONTROL_POINTS, RetargetConfig
 from .solve.problem import Problem, method_objective, unused_settings

@@ -36,7 +36,7 @@ def marker_weight(markers, name):
 def test_a_hand_onto_itself_keeps_its_weights(source_and_clip):
     source, clip = source_and_clip
     markers = marker_targets(clip, source, source, identity(propose_annotations(source, source)))
-    names, d = rest_marker_mismatch(markers, source, source)
+    names, _, d = rest_marker_mismatch(markers, source, source)
     assert len(names) == len(set(markers.names)) and np.abs(d).max() < 1e-9
     weighted = proportion_weights(markers, source, source, WIDTH)
     assert np.allclose(weighted.pair_weight, markers.pair_weight, rtol=1e-12)
@@ -52,7 +52,7 @@ def test_a_marker_the_target_cannot_meet_loses_its_weight(source_and_clip):
     moved = dataclasses.replace(by_name["IndexFingertip"], target=by_name["ThumbFingertip"].target)
     ann = dataclasses.replace(ann, markers=tuple(moved if m.name == "IndexFingertip" else m for m in ann.markers))
     markers = marker_targets(clip, source, source, ann)
-    names, d = rest_marker_mismatch(markers, source, source)
+    names, _, d = rest_marker_mismatch(markers, source, source)
     d = dict(zip(names, d))
     assert d["IndexFingertip"] > 0.03
     assert max(v for n, v in d.items() if n != "IndexFingertip") < 0.5 * d["IndexFingertip"]

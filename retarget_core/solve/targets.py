@@ -181,9 +181,10 @@ def scale_finger_markers(markers: MarkerTargets, source: Rig, target: Rig) -> Ma
     return dataclasses.replace(markers, source_positions=positions)
 
 
-def rest_marker_mismatch(markers: MarkerTargets, source: Rig, target: Rig) -> tuple[list, np.ndarray]:
-    """(marker names (M,), distance (M,) m of each marker from the source's after the rigid fit
-    of the target's markers onto the source's, both hands at rest). A marker's point is its
+def rest_marker_mismatch(markers: MarkerTargets, source: Rig, target: Rig) -> tuple[list, np.ndarray, np.ndarray]:
+    """(marker names (M,) in order of first appearance, the marker of every pair (Np,) as an
+    index into them, distance (M,) m of each marker from the source's after the rigid fit of
+    the target's markers onto the source's, both hands at rest). A marker's point is its
     pairs' weighted centroid on each side; the fit weighs every marker once."""
     if markers.source_faces is None:
         raise ValueError("marker targets built without their source points")
@@ -191,8 +192,9 @@ def rest_marker_mismatch(markers: MarkerTargets, source: Rig, target: Rig) -> tu
     s_rest = s_kin.points(source.rest_pose, s_kin.bind(SurfacePoints(markers.source_faces, markers.source_barycentric)))
     t_rest = t_kin.points(target.rest_pose, t_kin.bind(SurfacePoints(markers.target_faces, markers.target_barycentric)))
     t_rest = t_rest[markers.pair_target]  # (Np, 3), pair by pair like s_rest
-    names = list(dict.fromkeys(markers.names))
-    of = np.array([names.index(n) for n in markers.names])
+    index = {n: i for i, n in enumerate(dict.fromkeys(markers.names))}
+    names = list(index)
+    of = np.array([index[n] for n in markers.names], dtype=np.int64)
     w = markers.pair_weight / np.bincount(of, markers.pair_weight)[of]
     centroid = np.zeros((2, len(names), 3))
     for side, x in enumerate((s_rest, t_rest)):
@@ -200,7 +202,7 @@ def rest_marker_mismatch(markers: MarkerTargets, source: Rig, target: Rig) -> tu
             centroid[side, :, a] = np.bincount(of, w * x[:, a], minlength=len(names))
     fit = rigid_fit(centroid[1], centroid[0])
     placed = centroid[1] @ fit[:3, :3].T + fit[:3, 3]
-    return names, np.linalg.norm(placed - centroid[0], axis=1)
+    return names, of, np.linalg.norm(placed - centroid[0], axis=1)
 
 
 def proportion_weights(markers: MarkerTargets, source: Rig, target: Rig, width: float) -> MarkerTargets:
@@ -211,9 +213,8 @@ def proportion_weights(markers: MarkerTargets, source: Rig, target: Rig, width: 
     The new targets' ``proportion`` gives {marker: {"rest_mismatch_mm", "weight"}} (result.json)."""
     if width <= 0 or len(markers.pair_target) == 0:
         return markers
-    names, d = rest_marker_mismatch(markers, source, target)
+    names, of, d = rest_marker_mismatch(markers, source, target)
     factor = 1.0 / (1.0 + (d / width) ** 2)
-    of = np.array([names.index(n) for n in markers.names])
     weight = markers.pair_weight * factor[of]
     weight *= markers.pair_weight.sum() / weight.sum()
     per_marker = np.bincount(of, weight, minlength=len(names)) / np.bincount(of, markers.pair_weight, minlength=len(names))
