@@ -2,6 +2,7 @@
 animation and native Ts splines; JSON)."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -368,6 +369,29 @@ def test_bounded_fit_keeps_the_curve_within_the_limits():
     np.testing.assert_array_equal(inside.coeffs, fit_bspline(t, 0.5 * np.sin(3.0 * t), 14, optimize_knots=False).coeffs)
     with pytest.raises(InputError, match="lower <= upper"):
         fit_bspline(t, y, 14, bounds=(1.0, 0.0))
+
+
+def test_bounded_fit_where_scipys_bvls_stalls():
+    """A finger DOF of human_alt solved over the 1000-frame bench clip (the values as the solve
+    left them, tests/data/bounded_fit_stall.npy): 410 frames sit exactly on the +10 degree
+    limit. scipy's BVLS gave up there with NaN coefficients (status 0), and the delivered curve
+    of that DOF was NaN at 976 frames. The fit must come back finite, inside the limits and
+    optimal (no feasible change of one coefficient lowers the residual)."""
+    y = np.load(Path(__file__).parent / "data" / "bounded_fit_stall.npy")
+    t = np.arange(len(y)) / 120.0
+    lo, hi = -np.radians(10.0), np.radians(10.0)
+    curve = fit_bspline(t, y, 83, optimize_knots=False, bounds=(lo, hi))
+    assert np.all(np.isfinite(curve.coeffs))
+    dense = np.linspace(t[0], t[-1], 20001)
+    assert curve(dense).max() <= hi + 1e-12 and curve(dense).min() >= lo - 1e-12
+    assert np.sqrt(np.mean((curve(t) - y) ** 2)) < 0.01  # rad: it follows the data
+    base = np.sum((curve(t) - y) ** 2)
+    for k in range(curve.n_control):
+        for step in (-1e-4, 1e-4):
+            c = curve.coeffs.copy()
+            c[k] = np.clip(c[k] + step, lo, hi)
+            trial = type(curve)(knots=curve.knots, coeffs=c, degree=3)
+            assert np.sum((trial(t) - y) ** 2) >= base - 1e-9
 
 
 def test_fit_trajectory_limits_per_dof():

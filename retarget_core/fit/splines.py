@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.interpolate import BSpline, PPoly, make_lsq_spline
 
-from ..errors import InputError
+from ..errors import InputError, RetargetError
 
 EXTRAPOLATIONS = ("held", "linear")
 
@@ -340,7 +340,15 @@ def _bounded(x, y, knots, coeffs, degree, times, bounds) -> np.ndarray:
     from scipy.optimize import lsq_linear
 
     design = BSpline.design_matrix(x, knots, degree).toarray()
-    fit = lsq_linear(design, y, bounds=(lo, hi), method="bvls")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        fit = lsq_linear(design, y, bounds=(lo, hi), method="bvls")
+    if fit.status <= 0 or not np.all(np.isfinite(fit.x)):
+        # scipy's BVLS can stall with NaN steps (status 0) when long stretches of the data sit
+        # exactly on a bound (a joint held at its limit for 400 frames did it): the
+        # trust-region method solves the same convex problem without that failure
+        fit = lsq_linear(design, y, bounds=(lo, hi), method="trf", lsq_solver="exact", tol=1e-12)
+    if not np.all(np.isfinite(fit.x)):
+        raise RetargetError(f"the bounded least-squares fit within [{lo:g}, {hi:g}] failed ({fit.message})")
     return np.clip(fit.x, lo, hi)
 
 
@@ -433,6 +441,10 @@ def fit_trajectory(times, q, n_control: int, mask=None, optimize_knots: bool = T
             )
         except InputError as exc:
             raise InputError(str(exc), element=f"DOF {d}") from exc
+        except RetargetError as exc:
+            raise RetargetError(f"DOF {d}: {exc}") from exc
+        if not np.all(np.isfinite(curves[-1].coeffs)):  # never a NaN curve handed on as a result
+            raise RetargetError(f"DOF {d}: the fitted curve is not finite")
         failures += [{"dof": d, "error": e} for e in errors]
     if report is not None:
         report["failures"] = failures
