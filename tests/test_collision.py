@@ -55,6 +55,34 @@ def test_grid_gradient_is_the_interpolants_own(sphere_grid, rng):
     assert np.allclose(g, fd, atol=1e-5)
 
 
+def test_node_bound_culls_only_what_cannot_read_below(sphere_grid, rng):
+    """SdfGrids.node_values (one gather) is within node_reach of query() wherever the grid
+    reads, node_reach is the bound for exact distances (1.121 spacing, the slope measured on
+    the nodes), and maybe_below keeps every point query() puts below the level, on one grid
+    and with per-point grid ids."""
+    h = float(sphere_grid.spacing[0])
+    assert sphere_grid.node_reach[0] == pytest.approx(1.121 * h, rel=0.05)
+    p = rng.uniform(-0.027, 0.027, size=(20000, 3))  # inside, near and beyond the grid's box
+    d, _ = sphere_grid.query(p)
+    n = sphere_grid.node_values(p)
+    assert np.array_equal(d == FAR, n == FAR)
+    assert np.abs(d - n)[d < FAR].max() <= sphere_grid.node_reach[0]
+    # at the nodes themselves the two agree exactly
+    nodes = sphere_grid.origins[0] + h * rng.integers(1, sphere_grid.shapes[0] - 2, size=(100, 3))
+    np.testing.assert_allclose(sphere_grid.node_values(nodes), sphere_grid.query(nodes)[0], atol=1e-12)
+    for level in (-0.01, 0.0, 0.003, 0.02):
+        kept = sphere_grid.maybe_below(p, level)
+        assert set(np.flatnonzero(d < level)) <= set(kept.tolist())
+        assert len(kept) < len(p)  # it does cull
+    two = SdfGrids(np.concatenate([sphere_grid.values, sphere_grid.values + 0.01]),
+                   np.array([0, sphere_grid.values.size]), np.repeat(sphere_grid.shapes, 2, axis=0),
+                   np.repeat(sphere_grid.origins, 2, axis=0), np.repeat(sphere_grid.spacing, 2))
+    ids = rng.integers(0, 2, size=len(p))
+    d2, _ = two.query(p, ids)
+    assert set(np.flatnonzero(d2 < 0.0)) <= set(two.maybe_below(p, 0.0, ids).tolist())
+    np.testing.assert_allclose(d2[ids == 1], np.where(d[ids == 1] < FAR, d[ids == 1] + 0.01, FAR))
+
+
 @pytest.fixture(scope="module")
 def hand():
     rig = demo_hand("prosthetic_2dof", RES)

@@ -137,29 +137,26 @@ class ObjectCollision:
         self.all = kin.bind(SurfacePoints.from_vertices(self.vertices, surface.faces))
         self.focused = np.arange(len(self.vertices))
         self.binding = self.all
-        self.centre, self.radius = grid_spheres(self.grids)
-
-    def _near(self, points: np.ndarray, object_pose: np.ndarray) -> np.ndarray:
-        """Ids of the points (P, 3) world within the sphere around the object's grid (the
-        others read FAR there: a few flops each instead of a grid query)."""
-        c = object_pose[:3, :3] @ self.centre[0] + object_pose[:3, 3]
-        return np.flatnonzero(np.einsum("pa,pa->p", points - c, points - c) <= self.radius[0] ** 2)
 
     def _sdf(self, points: np.ndarray, object_pose: np.ndarray):
         inv = np.linalg.inv(object_pose)
         d, g = self.grids.query(points @ inv[:3, :3].T + inv[:3, 3])
         return d, g @ inv[:3, :3]  # the gradient in world
 
-    def _near_distances(self, pose, object_pose: np.ndarray):
-        """(ids (K,), signed distances (K,) m) of the sample points near the object at pose;
-        the others are farther than the grid reaches."""
+    def _below(self, pose, object_pose: np.ndarray, level: float, among: np.ndarray | None = None):
+        """(ids (K,), signed distances (K,) m) of the sample points (of ``among``, default all)
+        whose grid value at pose may be below ``level`` m; every other point reads ``level`` or
+        more (:meth:`SdfGrids.maybe_below`: one gather per point, the query only for these)."""
         x = self.kin.points(pose, self.all)
-        near = self._near(x, object_pose)
-        d, _ = self._sdf(x[near], object_pose)
-        return near, d
+        ids = np.arange(len(x)) if among is None else among
+        inv = np.linalg.inv(object_pose)
+        local = x[ids] @ inv[:3, :3].T + inv[:3, 3]
+        near = self.grids.maybe_below(local, level)
+        d, _ = self.grids.query(local[near])
+        return ids[near], d
 
     def focus(self, pose, object_pose: np.ndarray) -> None:
-        near, d = self._near_distances(pose, object_pose)
+        near, d = self._below(pose, object_pose, FOCUS_MARGIN)
         self.focused = near[d < FOCUS_MARGIN]
         self.binding = self.all.subset(self.focused) if len(self.focused) else None
 
@@ -167,17 +164,16 @@ class ObjectCollision:
         """True when a sample point left out by :meth:`focus` is inside the object at pose."""
         if len(self.focused) == len(self.vertices):
             return False
-        x = self.kin.points(pose, self.all)
-        out = np.ones(len(x), bool)
+        out = np.ones(len(self.vertices), bool)
         out[self.focused] = False
-        near = np.intersect1d(self._near(x, object_pose), np.flatnonzero(out), assume_unique=True)
-        d, _ = self._sdf(x[near], object_pose)
+        _, d = self._below(pose, object_pose, 0.0, np.flatnonzero(out))
         return bool(np.any(d < 0))
 
     def whole_value(self, pose, object_pose: np.ndarray, weight: float) -> float:
         """lambda * G_P over every sample point at pose (no focus needed): what
-        :meth:`focus` at pose then :meth:`value_and_cot` give, in one grid query."""
-        _, d = self._near_distances(pose, object_pose)
+        :meth:`focus` at pose then :meth:`value_and_cot` give, querying only the points that
+        may be inside."""
+        _, d = self._below(pose, object_pose, 0.0)
         pen = np.maximum(-d, 0.0) * MM
         return weight * float(pen @ pen)
 
@@ -237,6 +233,10 @@ class SelfCollision:
             owner.append(np.full(len(ids), p))
         self.vertices = np.concatenate(chosen)
         self.owner = np.concatenate(owner)
+        sizes = np.array([len(ids) for ids in chosen])
+        self._run_part = np.flatnonzero(sizes)
+        self._run_size = sizes[self._run_part].astype(np.float64)
+        self._runs = (np.cumsum(sizes) - sizes)[self._run_part]
         self.all = kin.bind(SurfacePoints.from_vertices(self.vertices, faces))
         # every (sample point, other part's grid) of the non-adjacent pairs, both ways
         pt, gr = [], []
@@ -261,59 +261,68 @@ class SelfCollision:
     def n_items(self) -> int:
         return len(self.item_point)
 
+    def _local(self, pose, x: np.ndarray, items: np.ndarray):
+        """The items' world points x (K, 3) in their grids' frames (K, 3), and the world
+        transforms of those frames (K, 4, 4)."""
+        world = pose.world[self.part_joint[self.item_grid[items]]]
+        return np.einsum("kba,kb->ka", world[:, :3, :3], x - world[:, :3, 3]), world
+
     def _sdf(self, pose, x: np.ndarray, items: np.ndarray):
         """At the items' world points x (K, 3): distances (K,), world gradients (K, 3), the
         points and the joints of the grids' frames (K,)."""
-        joint = self.part_joint[self.item_grid[items]]
-        world = pose.world[joint]  # (K, 4, 4)
-        local = np.einsum("kba,kb->ka", world[:, :3, :3], x - world[:, :3, 3])
+        local, world = self._local(pose, x, items)
         d, g = self.grids.query(local, self.item_grid[items])
-        return d, np.einsum("kab,kb->ka", world[:, :3, :3], g), x, joint
+        return d, np.einsum("kab,kb->ka", world[:, :3, :3], g), x, self.part_joint[self.item_grid[items]]
 
     def _near_items(self, pose, x: np.ndarray) -> np.ndarray:
         """Ids of the items whose two parts may touch at pose: the sphere around a part's posed
         sample points x (N, 3) meets the sphere around the other part's grid (rigid in its
         joint's frame). The others read FAR: most pairs of a hand are far apart."""
         n = self.parts.n_parts
-        count = np.bincount(self.owner, minlength=n).astype(np.float64)
-        centre = np.stack([np.bincount(self.owner, x[:, a], minlength=n) for a in range(3)], axis=1)
-        centre /= np.maximum(count, 1.0)[:, None]
+        # owner is sorted: each sampled part's points are one run starting at _runs
+        centre = np.zeros((n, 3))
+        centre[self._run_part] = np.add.reduceat(x, self._runs, axis=0) / self._run_size[:, None]
         radius = np.zeros(n)
-        np.maximum.at(radius, self.owner, np.linalg.norm(x - centre[self.owner], axis=1))
+        radius[self._run_part] = np.maximum.reduceat(np.linalg.norm(x - centre[self.owner], axis=1), self._runs)
         world = pose.world[self.part_joint]  # (P, 4, 4)
         grid_centre = np.einsum("pab,pb->pa", world[:, :3, :3], self.grid_centre) + world[:, :3, 3]
         gap = np.linalg.norm(centre[:, None, :] - grid_centre[None, :, :], axis=2)  # (P, P)
         near = gap <= radius[:, None] + self.grid_radius[None, :]
         return np.flatnonzero(near[self.item_owner, self.item_grid])
 
-    def _near_distances(self, pose):
-        """(items (K,), signed distances (K,) m) of the items whose parts may touch at pose."""
+    def _below(self, pose, level: float, left_out: np.ndarray | None = None):
+        """(items (K,), signed distances (K,) m) of the items (those not in ``left_out``, when
+        given) whose grid value at pose may be below ``level`` m; every other item reads
+        ``level`` or more (pair spheres, then :meth:`SdfGrids.maybe_below`)."""
         x = self.kin.points(pose, self.all)
         items = self._near_items(pose, x)
-        d, _, _, _ = self._sdf(pose, x[self.item_point[items]], items)
-        return items, d
+        if left_out is not None:
+            items = np.setdiff1d(items, left_out, assume_unique=True)
+        local, _ = self._local(pose, x[self.item_point[items]], items)
+        grid = self.item_grid[items]
+        near = self.grids.maybe_below(local, level, grid)
+        d, _ = self.grids.query(local[near], grid[near])
+        return items[near], d
 
     def focus(self, pose) -> None:
         if not self.n_items:
             return
-        items, d = self._near_distances(self.kin._as_pose(pose))
+        items, d = self._below(self.kin._as_pose(pose), FOCUS_MARGIN)
         self._focus_items(items[d < FOCUS_MARGIN])
 
     def whole_value(self, pose, weight: float) -> float:
-        """lambda * G_SC over every item at pose (no focus needed), in one grid query."""
+        """lambda * G_SC over every item at pose (no focus needed), querying only the items
+        that may be inside."""
         if not self.n_items:
             return 0.0
-        _, d = self._near_distances(self.kin._as_pose(pose))
+        _, d = self._below(self.kin._as_pose(pose), 0.0)
         pen = np.maximum(-d, 0.0) * MM
         return weight * float(pen @ pen)
 
     def missed(self, pose) -> bool:
         if len(self.focused) == self.n_items:
             return False
-        pose = self.kin._as_pose(pose)
-        x = self.kin.points(pose, self.all)
-        rest = np.setdiff1d(self._near_items(pose, x), self.focused, assume_unique=True)
-        d, _, _, _ = self._sdf(pose, x[self.item_point[rest]], rest)
+        _, d = self._below(self.kin._as_pose(pose), 0.0, left_out=self.focused)
         return bool(np.any(d < 0))
 
     def value_and_grad(self, pose, weight: float, want_grad: bool):
