@@ -480,8 +480,9 @@ class RetargetConfig:
         contact median within 0.1 mm (LEAP 4.69 -> 4.65 mm, alien 1.71 -> 1.62, witch 1.94 ->
         1.98), LEAP's self intersection rose from 8.2 to 10.7 %, robot4's fell from 4.6 to 4.0 %;
         (9) the collision terms are built but off (``weights.lambda_p``, ``weights.lambda_sc``):
-        they still cost about 2.2x the solving stages (``handretarget bench --collision --frames
-        120``, stop 32, after cheaper grid queries and culled focus sets; 2.7x before). With lambda_p = 10
+        they still cost about 1.9x the solving stages on the bench's 1000 frames
+        (``handretarget bench --collision``, stop 33; 1.5-1.6x at ``--frames 120``), mostly
+        through the jitter they give the full pass (README, "collision"). With lambda_p = 10
         and lambda_sc = 10 (every 4th vertex for the penetration term, 32 sample vertices per
         hand part for self collision) robot4 on
         bottle_pick_place (120 frames, exact measures over the contact frames) went from 31.4 mm
@@ -600,7 +601,7 @@ def _default() -> RetargetConfig:
     cfg.refinement.resolve_tolerance_angular = 0.5  # re-solve only frames the filter really moved
     cfg.refinement.resolve_tolerance_linear = 0.05
     cfg.sampling.table_sample_stride = 3  # a third of the hand's vertices feel the table
-    # collision terms (objective, collision.py): off until they cost at most 1.5x (2.7x now);
+    # collision terms (objective, collision.py): off until they cost at most 1.5x (1.9x at stop 33);
     # the sampling is what --set weights.lambda_p=10 --set weights.lambda_sc=10 then uses
     cfg.sampling.penetration_sample_stride = 4
     cfg.fit.respect_limits = True  # curves a rig (or a robot) can play back
