@@ -75,6 +75,15 @@ class SdfGrids:
                             for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)], axis=1)
         return 1.0 / self.spacing, (shapes - 2).astype(np.float64), strides, corners
 
+    def _cells(self, p: np.ndarray, grid):
+        """The grid ids (int or (P,)), the points (P, 3) in node units, their cells (P, 3) and
+        the ids of the points inside their grid (the others read FAR)."""
+        inv_h, last, _, _ = self._tables
+        g = np.asarray(grid, dtype=np.int64)
+        u = (p - self.origins[g]) * (inv_h[g][:, None] if g.ndim else inv_h[g])
+        cell = np.floor(u)
+        return g, u, cell, np.flatnonzero(((cell >= 0) & (cell <= last[g])).all(axis=1))
+
     def query(self, points: np.ndarray, grid: np.ndarray | int = 0):
         """Trilinear signed distance (P,) m and its gradient (P, 3) at points (P, 3) given in
         the frame of grid ``grid`` (an int or (P,) ids). Outside the grid: FAR and 0."""
@@ -83,27 +92,17 @@ class SdfGrids:
         grad = np.zeros((len(p), 3))
         if not len(p):
             return d, grad
-        inv_h, last, strides, corners = self._tables
-        many = np.ndim(grid) > 0
-        g = np.asarray(grid, dtype=np.int64)
-        if many:
-            u = (p - self.origins[g]) * inv_h[g][:, None]
-            cell = np.floor(u)
-            keep = np.flatnonzero(((cell >= 0) & (cell <= last[g])).all(axis=1))
-            if not len(keep):
-                return d, grad
+        inv_h, _, strides, corners = self._tables
+        g, u, cell, keep = self._cells(p, grid)
+        if not len(keep):
+            return d, grad
+        c = cell[keep]
+        if g.ndim:
             gk = g[keep]
-            c = cell[keep]
             first = self.offsets[gk] + np.einsum("ka,ka->k", c.astype(np.int64), strides[gk])
             v = self.values[first[:, None] + corners[gk]]
             scale = inv_h[gk][:, None]
         else:
-            u = (p - self.origins[g]) * inv_h[g]
-            cell = np.floor(u)
-            keep = np.flatnonzero(((cell >= 0) & (cell <= last[g])).all(axis=1))
-            if not len(keep):
-                return d, grad
-            c = cell[keep]
             first = self.offsets[g] + c.astype(np.int64) @ strides[g]
             v = self.values[first[:, None] + corners[g]]
             scale = inv_h[g]
@@ -154,20 +153,12 @@ class SdfGrids:
         d = np.full(len(p), FAR)
         if not len(p):
             return d
-        inv_h, last, strides, _ = self._tables
-        g = np.asarray(grid, dtype=np.int64)
-        if np.ndim(g) > 0:
-            u = (p - self.origins[g]) * inv_h[g][:, None]
-            lim = last[g]
-        else:
-            u = (p - self.origins[g]) * inv_h[g]
-            lim = last[g]
-        cell = np.floor(u)
-        keep = np.flatnonzero(((cell >= 0) & (cell <= lim)).all(axis=1))
+        strides = self._tables[2]
+        g, u, _, keep = self._cells(p, grid)
         if not len(keep):
             return d
         node = np.rint(u[keep]).astype(np.int64)  # a corner of the cell query() reads
-        if np.ndim(g) > 0:
+        if g.ndim:
             gk = g[keep]
             d[keep] = self.values[self.offsets[gk] + np.einsum("ka,ka->k", node, strides[gk])]
         else:
@@ -178,5 +169,5 @@ class SdfGrids:
         """Ids of the points (P, 3) where :meth:`query` may read below ``level`` (m); at every
         other point it reads ``level`` or more (by :attr:`node_reach`), so it need not be
         queried."""
-        reach = self.node_reach[grid] if np.ndim(grid) > 0 else self.node_reach[int(grid)]
+        reach = self.node_reach[np.asarray(grid, dtype=np.int64)]
         return np.flatnonzero(self.node_values(points, grid) < level + reach)
