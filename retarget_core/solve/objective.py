@@ -28,6 +28,7 @@ rig's vector-Jacobian products (one pass over the joints per term), never finite
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -155,6 +156,17 @@ class FrameObjective:
         if inside_all == 0 or self.sample_binding is None:
             return inside_all > 0
         return inside_all > int((box_signed_distance(self.kin.points(pose, self.sample_binding), *self.table) < 0).sum())
+
+    @contextmanager
+    def collision_off(self):
+        """Within the block the objective leaves out the collision terms (G_P, G_SC); the
+        Gauss-Newton warm start runs so (see :func:`~retarget_core.solve.frame_solver.solve_frame`)."""
+        held = self.object_collision, self.self_collision
+        self.object_collision = self.self_collision = None
+        try:
+            yield self
+        finally:
+            self.object_collision, self.self_collision = held
 
     # ---- the terms -----------------------------------------------------------------------------
     def whole_value(self, q: np.ndarray) -> float:
