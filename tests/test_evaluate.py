@@ -110,6 +110,23 @@ def test_contact_error_matches_the_retargets_own_figures_on_solved_frames(output
     assert all(v is not None for i, v in enumerate(inter) if i % 5 == 0)
 
 
+def test_solved_frames_contact_error_is_the_retargets_own(outputs):
+    """metrics.json keeps the solved frames' contact error beside the delivered curve's: the
+    figure retarget printed for the frames the curves were fitted to (and, without a fit, the
+    delivered figure itself)."""
+    for name in ("splines", "frames"):
+        out = outputs[name]
+        code, _, err = run_cli(["evaluate", str(out), "--no-render", "--stride", "7"])
+        assert code == 0, err
+        s = json.loads((out / "metrics.json").read_text())["summary"]
+        r = json.loads((out / "result.json").read_text())["summary"]
+        # mm; the curves are evaluated again from result.json's knots and coefficients (1e-6 mm apart)
+        assert s["solved_contact_error_median_mm"] == pytest.approx(r["solved_contact_distance_median_mm"], abs=1e-4)
+        assert s["contact_error_median_mm"] == pytest.approx(r["contact_distance_median_mm"], abs=1e-4)
+        if name == "frames":
+            assert s["solved_contact_error_median_mm"] == pytest.approx(s["contact_error_median_mm"], abs=1e-9)
+
+
 def test_baseline_output_is_evaluated_as_such(outputs):
     code, _, err = run_cli(["evaluate", str(outputs["keyvectors"]), "--no-render", "--stride", "9"])
     assert code == 0, err

@@ -24,6 +24,7 @@ METHODS = ("contacts", "fingertips", "keyvectors")
 #: the columns of the grid table: (header, metrics.json summary key)
 COLUMNS = (
     ("contact error median (mm)", "contact_error_median_mm"),
+    ("solved frames' contact error (mm)", "solved_contact_error_median_mm"),
     ("coverage within 5 mm", "contact_coverage_mean"),
     ("hand-object intersection median (%)", "hand_object_intersection_percent_median"),
     ("penetration p95 (mm)", "penetration_mm_p95"),

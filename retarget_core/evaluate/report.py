@@ -140,11 +140,13 @@ def evaluate_output(folder, *, stride: int = 1, self_intersection_stride: int | 
     depth_mm = {k: np.full(n, np.nan) for k in DEPTHS}
     reasons = {}
     contact_mm = np.full(n, np.nan)
+    solved_contact_mm = np.full(n, np.nan)  # the same measure at the solved frames the curves were fitted to
     coverage = np.full(n, np.nan)
     contacts = scene_contacts(scene)
     if contacts is not None:
         distances = contact_distances(kin, q, contacts)
         contact_mm, _ = median_per_frame_mm(distances, contacts.frame_offsets)
+        solved_contact_mm, _ = median_per_frame_mm(contact_distances(kin, result.q, contacts), contacts.frame_offsets)
         # the source contacts the transfer dropped count as not realised
         coverage = coverage_per_frame(distances, contacts.frame_offsets, scene.source_contact_count, COVERAGE_MM / MM)
 
@@ -187,6 +189,8 @@ def evaluate_output(folder, *, stride: int = 1, self_intersection_stride: int | 
     summary = {
         "contact_frames": int(contact_frames.sum()),
         "contact_error_median_mm": float(np.median(contact_mm[contact_frames])) if contact_frames.any() else None,
+        "solved_contact_error_median_mm": float(np.median(solved_contact_mm[contact_frames]))
+        if contact_frames.any() else None,
         "contact_coverage_mean": float(np.mean(coverage[np.isfinite(coverage)])) if np.isfinite(coverage).any() else None,
         "marker_error_median_mm": summarize_series(result.marker_error_mm)["median"],
         "intersection_over": over,
