@@ -375,10 +375,12 @@ def coherence_pass(runner: FrameRunner, problem: Problem, q: np.ndarray):
     poses = [[qf] for qf in q]
     values: list[list] = [[0.0] for _ in q]  # own values filled in where a trace brings a rival
     valued = np.zeros(len(q), dtype=bool)
+    runner.executor.report("coherence", 0, COHERENCE_ROUNDS)  # a stage is announced even when it finds nothing
     for round_ in range(COHERENCE_ROUNDS):
         if not jumps.any():
             break
-        runner.executor.report("coherence", round_, COHERENCE_ROUNDS)
+        if round_:
+            runner.executor.report("coherence", round_, COHERENCE_ROUNDS)
         forward, backward = branch_runs(jumps, 1), branch_runs(jumps, -1)
         runs = forward + backward
         seeds = [q[r[0] - 1] for r in forward] + [q[r[0] + 1] for r in backward]
