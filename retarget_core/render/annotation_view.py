@@ -96,7 +96,7 @@ def palm_camera(model, points, size, *, margin: float = 0.06, back: bool = False
     """Orthographic camera looking at the palm of ``model`` (along -palmar; ``back``: at the back,
     along +palmar), up = the hand's forward direction, framing ``points`` (N, 3) in ``size``."""
     frame = model.palm_frame()
-    lateral, forward, dorsal = frame[:3, 0], frame[:3, 1], frame[:3, 2]
+    forward, dorsal = frame[:3, 1], frame[:3, 2]  # the palm frame: lateral, forward, dorsal axes
     look = dorsal if not back else -dorsal  # from the eye to the hand
     right = np.cross(look, forward)
     pts = np.asarray(points, float).reshape(-1, 3)
