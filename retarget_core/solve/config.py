@@ -6,7 +6,7 @@
 - :class:`Weights`        the objective's lambda coefficients (paper table "Optimization
                           weighting coefficients": all 1.0 except lambda_j = 50) plus the
                           collision weights beyond the paper: hand-object penetration
-                          lambda_p and self collision lambda_sc (0 = off; 10 in "default").
+                          lambda_p and self collision lambda_sc (0 = off; on in "default").
 - :class:`SolverSettings` the per-frame optimiser (nlopt LD_MMA, 100 evaluations,
                           xtol_rel 1e-4 in the paper's code).
 - :class:`Refinement`     the acceleration threshold E_acc (500 deg/s^2 and 500 cm/s^2), the
@@ -127,7 +127,7 @@ METHODS = ("contacts", "fingertips", "keyvectors")
 MARKER_DISTANCES = ("squared", "huber")
 
 #: Collision weights measured on robot and prosthetic hands (see the default preset's note 9):
-#: the default preset's; ``--set weights.lambda_p=0 --set weights.lambda_sc=0`` turns them off.
+#: what ``--set weights.lambda_p=10 --set weights.lambda_sc=10`` turns on.
 COLLISION_WEIGHTS = {"lambda_p": 10.0, "lambda_sc": 10.0}
 
 #: Smallest control-point count of a cubic B-spline.
@@ -479,17 +479,16 @@ class RetargetConfig:
         (``handretarget grid ... --clip bottle_pick_place --method contacts``) kept every
         contact median within 0.1 mm (LEAP 4.69 -> 4.65 mm, alien 1.71 -> 1.62, witch 1.94 ->
         1.98), LEAP's self intersection rose from 8.2 to 10.7 %, robot4's fell from 4.6 to 4.0 %;
-        (9) the collision terms are on: hand-object penetration lambda_p = 10 (every 4th vertex)
-        and self collision lambda_sc = 10 (32 sample vertices per hand part), not in the paper.
-        They cost 1.22x the solving stages on the bench's 1000 frames (``handretarget bench``,
-        stop 34: 149.0 s against 121.9 s; median contact distance 1.59 against 1.50 mm at the
-        delivered curve), since the Gauss-Newton warm start leaves them out (with them in it the
-        warm-started fingers jittered and the cost was 1.6-1.9x). Before that (stop 31), on robot4, bottle_pick_place
-        (120 frames, exact measures over the contact frames) they took p95 penetration from
-        31.4 to 1.74 mm and median self intersection from 1.65 % to 0.0006 % (contact error
-        3.50 -> 3.94 mm); prosthetic_1dof 1.60 -> 0.90 mm p95 (contact 2.13 -> 2.20),
-        human_alt 0.67 -> 0.58 (contact 1.61 -> 1.62). ``--set weights.lambda_p=0 --set
-        weights.lambda_sc=0`` turns them off.
+        (9) the collision terms are built but off (``weights.lambda_p``, ``weights.lambda_sc``):
+        they still cost about 1.9x the solving stages on the bench's 1000 frames
+        (``handretarget bench --collision``, stop 33; 1.5-1.6x at ``--frames 120``), mostly
+        through the jitter they give the full pass (README, "collision"). With lambda_p = 10
+        and lambda_sc = 10 (every 4th vertex for the penetration term, 32 sample vertices per
+        hand part for self collision) robot4 on
+        bottle_pick_place (120 frames, exact measures over the contact frames) went from 31.4 mm
+        p95 penetration and 1.65 % median self intersection to 1.74 mm and 0.0006 %, contact
+        error 3.50 -> 3.94 mm; prosthetic_1dof 1.60 -> 0.90 mm p95 (contact 2.13 -> 2.20),
+        human_alt 0.67 -> 0.58 (contact 1.61 -> 1.62).
 
     Top-level key ``method``: ``"contacts"`` (the paper) or a contact-free baseline
     (:data:`METHODS`); the settings a baseline does not use in its finger passes are listed in
@@ -602,9 +601,8 @@ def _default() -> RetargetConfig:
     cfg.refinement.resolve_tolerance_angular = 0.5  # re-solve only frames the filter really moved
     cfg.refinement.resolve_tolerance_linear = 0.05
     cfg.sampling.table_sample_stride = 3  # a third of the hand's vertices feel the table
-    # collision terms (objective, collision.py): hand-object penetration and self collision
-    cfg.weights.lambda_p = COLLISION_WEIGHTS["lambda_p"]
-    cfg.weights.lambda_sc = COLLISION_WEIGHTS["lambda_sc"]
+    # collision terms (objective, collision.py): off until they cost at most 1.5x (1.9x at stop 33);
+    # the sampling is what --set weights.lambda_p=10 --set weights.lambda_sc=10 then uses
     cfg.sampling.penetration_sample_stride = 4
     cfg.fit.respect_limits = True  # curves a rig (or a robot) can play back
     cfg.fit.polish_iterations = 4  # the delivered curve scored on what the frames were solved on
