@@ -46,8 +46,7 @@ def _bench_retarget_arguments(p) -> None:
     p.add_argument("--speedup-frames", type=int, default=4, help="frames timed with both gradient modes")
     p.add_argument("--json", action="store_true")
     p.add_argument("--collision", action="store_true",
-                   help="the collision terms on (lambda_p = lambda_sc = 10) even where the preset has them off "
-                        "(the paper preset); the default preset has them on")
+                   help="the collision terms on (lambda_p = lambda_sc = 10), then the same run without them")
     p.add_argument("--no-collision-off", dest="collision_off", action="store_false",
                    help="skip the second run without the collision terms")
 
