@@ -216,10 +216,10 @@ def test_focus_culls_only_what_reads_far(hand, rng):
     assert seen_object > 0 and seen_items > 0  # the poses did bring points near
 
 
-def test_whole_value_is_the_focused_objective_at_the_same_pose(hand, rng):
-    """FrameObjective.whole_value (one-off values: a frame scored, the polish's trial steps)
-    gives what focus_samples at q then value_and_grad give, table and both collision terms
-    included, on poses with points inside the table, the object and another part."""
+def _ball_scene_objective(hand, rng, lambda_collision: float):
+    """A frame objective of the hand over a 2 cm ball at its centre and a table under its lowest
+    3 mm, 3 markers 1 cm off and 3 contacts; the collision weights ``lambda_collision``.
+    Returns (objective, the ball's pose (4, 4))."""
     from retarget_core.mesh.surface_points import SurfacePoints
     from retarget_core.solve.config import RetargetConfig
     from retarget_core.solve.objective import FrameData, FrameObjective
@@ -232,7 +232,7 @@ def test_whole_value_is_the_focused_objective_at_the_same_pose(hand, rng):
     table = np.eye(4)
     table[2, 3] = v[:, 2].min() + 0.003 - 0.05  # the hand's lowest 3 mm in a 10 cm slab
     cfg = RetargetConfig.preset("default")
-    cfg.weights.lambda_p = cfg.weights.lambda_sc = 10.0
+    cfg.weights.lambda_p = cfg.weights.lambda_sc = lambda_collision
     faces = rng.integers(0, len(rig.surface.faces), 6)
     bary = rng.dirichlet(np.ones(3), 6)
     objective = FrameObjective(rig, cfg, faces[:3], bary[:3], np.arange(3), np.ones(3) / 3, table_pose=table,
@@ -241,6 +241,15 @@ def test_whole_value_is_the_focused_objective_at_the_same_pose(hand, rng):
     markers = kin.points(rig.rest_pose, kin.bind(SurfacePoints(faces[:3], bary[:3]))) + 0.01
     contacts = SurfacePoints(faces[3:], bary[3:])
     objective.set_frame(FrameData(markers, contacts, v[:3], np.tile([0.0, 0.0, 1.0], (3, 1)), place))
+    return objective, place
+
+
+def test_whole_value_is_the_focused_objective_at_the_same_pose(hand, rng):
+    """FrameObjective.whole_value (one-off values: a frame scored, the polish's trial steps)
+    gives what focus_samples at q then value_and_grad give, table and both collision terms
+    included, on poses with points inside the table, the object and another part."""
+    rig, kin = hand
+    objective, place = _ball_scene_objective(hand, rng, 10.0)
     terms = set()
     for q in [rig.rest_pose, _crossed_fingers(rig)] + [rig.rest_pose + rng.normal(scale=0.2, size=rig.n_dofs)
                                                         for _ in range(3)]:
@@ -251,6 +260,39 @@ def test_whole_value_is_the_focused_objective_at_the_same_pose(hand, rng):
         terms |= {name for name, on in (("object", objective.object_collision.whole_value(pose, place, 1.0) > 0),
                                         ("self", objective.self_collision.whole_value(pose, 1.0) > 0)) if on}
     assert terms == {"object", "self"}
+
+
+def test_the_warm_start_leaves_the_collision_terms_out(hand, rng):
+    """solve_frame's Gauss-Newton warm start runs on the objective without G_P and G_SC (they
+    join where MMA starts): from a seed with crossed fingers, where both terms act, it reaches
+    what the same objective with the terms off reaches, not what the terms would give; the
+    terms are back on after it, also when the block raises."""
+    from retarget_core.solve.frame_solver import gauss_newton_warm_start, solve_frame
+
+    rig, kin = hand
+    scene = int(rng.integers(1 << 31))  # the same markers and contacts in both objectives
+    on, _ = _ball_scene_objective(hand, np.random.default_rng(scene), 10.0)
+    off, _ = _ball_scene_objective(hand, np.random.default_rng(scene), 0.0)
+    seed = _crossed_fingers(rig)
+    lower, upper, active = rig.lower, rig.upper, np.ones(rig.n_dofs, dtype=bool)
+    for objective in (on, off):
+        objective.set_seed(seed)
+        objective.focus_samples(seed)
+    held = on.object_collision, on.self_collision
+    assert on.whole_value(seed) > off.whole_value(seed) + 1.0  # both terms act at the seed
+    with_terms = gauss_newton_warm_start(on, seed, lower, upper, active, 8)
+    without = gauss_newton_warm_start(off, seed, lower, upper, active, 8)
+    assert np.abs(with_terms - without).max() > 1e-3  # the terms would steer the warm start
+    # MMA with one evaluation keeps the warm start's pose (the best point it saw)
+    got = solve_frame(on, seed, lower, upper, active, maxeval=1, xtol_rel=1e-4, warm_start_iterations=8,
+                      kinds=[d.kind for d in rig.dofs], root_mask=[d.joint == 0 for d in rig.dofs])
+    np.testing.assert_allclose(got.q, without, rtol=0, atol=1e-10)  # rad, m
+    assert (on.object_collision, on.self_collision) == held
+    with pytest.raises(ZeroDivisionError):
+        with on.collision_off():
+            assert on.object_collision is None and on.self_collision is None
+            1 / 0
+    assert (on.object_collision, on.self_collision) == held
 
 
 def test_a_frame_solve_pulls_crossed_fingers_apart(hand, rng):
