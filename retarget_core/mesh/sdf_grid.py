@@ -15,10 +15,22 @@ from functools import cached_property
 
 import numpy as np
 
-from .isosurface import sample_grid
 
 #: Distance read outside a grid (m): far enough that no penalty acts there.
 FAR = 1.0
+
+
+def centred_grid(lower: np.ndarray, upper: np.ndarray, spacing: float):
+    """Nodes (N, 3) every ``spacing`` m covering [lower, upper] (3,) m, placed symmetrically about
+    the box's centre: (points, shape (nx, ny, nz), origin (3,)). A mesh and its mirror image then
+    get lattices that are mirror images too, so the interpolated distances of a mirrored hand or
+    object are the mirror of the original's (a lattice starting at ``lower`` would not be)."""
+    lower, upper = np.asarray(lower, float), np.asarray(upper, float)
+    shape = np.ceil((upper - lower) / spacing - 1e-9).astype(np.int64) + 1
+    origin = 0.5 * (lower + upper) - 0.5 * (shape - 1) * spacing
+    axes = [origin[i] + spacing * np.arange(shape[i]) for i in range(3)]
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    return points, tuple(int(n) for n in shape), origin
 
 
 def mesh_sdf_samples(vertices: np.ndarray, faces: np.ndarray, spacing: float, margin: float):
@@ -28,7 +40,7 @@ def mesh_sdf_samples(vertices: np.ndarray, faces: np.ndarray, spacing: float, ma
 
     v = np.ascontiguousarray(vertices, dtype=np.float64)
     f = np.ascontiguousarray(faces, dtype=np.int64)
-    points, shape, origin = sample_grid(v.min(axis=0) - margin, v.max(axis=0) + margin, spacing)
+    points, shape, origin = centred_grid(v.min(axis=0) - margin, v.max(axis=0) + margin, spacing)
     d, _, _, _ = igl.signed_distance(points, v, f, sign_type=igl.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER)
     return np.asarray(d, dtype=np.float64).reshape(shape), origin
 
