@@ -173,12 +173,13 @@ class FrameObjective:
         """E(q) over every sample point, as :meth:`focus_samples` at q then :meth:`value_and_grad`
         give it, without building the focused sets: for one-off values (a frame scored at a
         pose, the polish's trial steps), where the focus would cost as much as the value."""
-        focused = self.sample_binding, self.object_collision, self.self_collision
-        self.sample_binding, self.object_collision, self.self_collision = self.all_samples, None, None
+        # every table sample point; the collision terms come after, over all their points
+        focused, self.sample_binding = self.sample_binding, self.all_samples
         try:
-            value, _ = self.value_and_grad(q, want_grad=False)
+            with self.collision_off():
+                value, _ = self.value_and_grad(q, want_grad=False)
         finally:
-            self.sample_binding, self.object_collision, self.self_collision = focused
+            self.sample_binding = focused
         pose = self.kin.pose(q)
         if self.object_collision is not None and self.frame.object_pose is not None:
             value += self.object_collision.whole_value(pose, self.frame.object_pose, self.w.lambda_p)
