@@ -46,6 +46,29 @@ def test_sphere_grid_reads_the_signed_distance(sphere_grid, rng):
     assert d_out[0] == FAR and not g_out.any()
 
 
+def test_grid_nodes_hold_the_exact_signed_distance():
+    """Every node holds the exact distance to the mesh (brute force over every triangle), negative
+    inside. igl's signed_distance in its fast-winding-number mode approximates the magnitude
+    too: 0.17 mm off on a torus, 0.34 mm on the demo bottle (at 3 mm nodes)."""
+    from retarget_core.mesh.sdf_grid import centred_grid, mesh_sdf_samples
+
+    major, minor = 0.04, 0.012
+    mesh = trimesh.creation.torus(major, minor, major_sections=24, minor_sections=12)
+    values, origin = mesh_sdf_samples(mesh.vertices, mesh.faces, 0.005, 0.008)
+    points, shape, grid_origin = centred_grid(mesh.vertices.min(axis=0) - 0.008, mesh.vertices.max(axis=0) + 0.008,
+                                              0.005)
+    assert values.shape == shape and np.allclose(origin, grid_origin)
+    tri = mesh.triangles
+    brute = np.array([np.linalg.norm(trimesh.triangles.closest_point(tri, np.broadcast_to(p, (len(tri), 3))) - p,
+                                     axis=1).min() for p in points])
+    np.testing.assert_allclose(np.abs(values.ravel()), brute, rtol=0, atol=1e-12)
+    # the sign: the smooth torus's inside, where the polygon and the smooth surface agree (1 mm)
+    tube = np.hypot(np.hypot(points[:, 0], points[:, 1]) - major, points[:, 2]) - minor
+    clear = np.abs(tube) > 0.001
+    assert (tube[clear] < 0).sum() > 30 and (tube[clear] > 0.02).sum() > 30  # inside, and far outside
+    np.testing.assert_array_equal(values.ravel()[clear] < 0, tube[clear] < 0)
+
+
 def test_a_mirrored_mesh_reads_the_mirrored_distances(rng):
     """The grid's nodes sit symmetrically about the mesh's box, so the grid of a mesh's mirror
     image reads, at mirrored points, what the mesh's grid reads (a left hand made by

@@ -41,8 +41,14 @@ def mesh_sdf_samples(vertices: np.ndarray, faces: np.ndarray, spacing: float, ma
     v = np.ascontiguousarray(vertices, dtype=np.float64)
     f = np.ascontiguousarray(faces, dtype=np.int64)
     points, shape, origin = centred_grid(v.min(axis=0) - margin, v.max(axis=0) + margin, spacing)
-    d, _, _, _ = igl.signed_distance(points, v, f, sign_type=igl.SIGNED_DISTANCE_TYPE_FAST_WINDING_NUMBER)
-    return np.asarray(d, dtype=np.float64).reshape(shape), origin
+    # The magnitude is the exact closest-point distance and only the sign comes from the
+    # (fast) winding number: igl.signed_distance in its fast-winding-number mode also
+    # approximates the magnitude (0.34 mm off on the demo bottle at 3 mm nodes), and that error
+    # is not mirror symmetric.
+    squared, _, _ = igl.point_mesh_squared_distance(points, v, f)
+    inside = np.asarray(igl.fast_winding_number(v, f, points)) > 0.5
+    d = np.sqrt(np.asarray(squared, dtype=np.float64)) * np.where(inside, -1.0, 1.0)
+    return d.reshape(shape), origin
 
 
 @dataclass(frozen=True)
