@@ -257,10 +257,10 @@ def test_focus_culls_only_what_reads_far(hand, rng):
     assert seen_object > 0 and seen_items > 0  # the poses did bring points near
 
 
-def _ball_scene_objective(hand, rng, lambda_collision: float):
+def _ball_scene_objective(hand, rng, lambda_collision: float, lambda_self: float | None = None):
     """A frame objective of the hand over a 2 cm ball at its centre and a table under its lowest
-    3 mm, 3 markers 1 cm off and 3 contacts; the collision weights ``lambda_collision``.
-    Returns (objective, the ball's pose (4, 4))."""
+    3 mm, 3 markers 1 cm off and 3 contacts; the collision weights ``lambda_collision`` (self
+    collision ``lambda_self`` when given). Returns (objective, the ball's pose (4, 4))."""
     from retarget_core.mesh.surface_points import SurfacePoints
     from retarget_core.solve.config import RetargetConfig
     from retarget_core.solve.objective import FrameData, FrameObjective
@@ -274,6 +274,8 @@ def _ball_scene_objective(hand, rng, lambda_collision: float):
     table[2, 3] = v[:, 2].min() + 0.003 - 0.05  # the hand's lowest 3 mm in a 10 cm slab
     cfg = RetargetConfig.preset("default")
     cfg.weights.lambda_p = cfg.weights.lambda_sc = lambda_collision
+    if lambda_self is not None:
+        cfg.weights.lambda_sc = lambda_self
     faces = rng.integers(0, len(rig.surface.faces), 6)
     bary = rng.dirichlet(np.ones(3), 6)
     objective = FrameObjective(rig, cfg, faces[:3], bary[:3], np.arange(3), np.ones(3) / 3, table_pose=table,
@@ -303,37 +305,42 @@ def test_whole_value_is_the_focused_objective_at_the_same_pose(hand, rng):
     assert terms == {"object", "self"}
 
 
-def test_the_warm_start_leaves_the_collision_terms_out(hand, rng):
-    """solve_frame's Gauss-Newton warm start runs on the objective without G_P and G_SC (they
-    join where MMA starts): from a seed with crossed fingers, where both terms act, it reaches
-    what the same objective with the terms off reaches, not what the terms would give; the
-    terms are back on after it, also when the block raises."""
+def test_the_warm_start_leaves_the_object_term_out_and_keeps_self_collision(hand, rng):
+    """solve_frame's Gauss-Newton warm start runs on the objective without G_P (it joins where
+    MMA starts) and with G_SC: from a seed with crossed fingers, where both terms act, it reaches
+    what the same objective with only G_P off reaches, not what the objective with both terms
+    or with neither reaches; both terms are back on after it, also when the block raises."""
     from retarget_core.solve.frame_solver import gauss_newton_warm_start, solve_frame
 
     rig, kin = hand
-    scene = int(rng.integers(1 << 31))  # the same markers and contacts in both objectives
+    scene = int(rng.integers(1 << 31))  # the same markers and contacts in every objective
     on, _ = _ball_scene_objective(hand, np.random.default_rng(scene), 10.0)
+    self_only, _ = _ball_scene_objective(hand, np.random.default_rng(scene), 0.0, lambda_self=10.0)
     off, _ = _ball_scene_objective(hand, np.random.default_rng(scene), 0.0)
     seed = _crossed_fingers(rig)
     lower, upper, active = rig.lower, rig.upper, np.ones(rig.n_dofs, dtype=bool)
-    for objective in (on, off):
+    for objective in (on, self_only, off):
         objective.set_seed(seed)
         objective.focus_samples(seed)
     held = on.object_collision, on.self_collision
-    assert on.whole_value(seed) > off.whole_value(seed) + 1.0  # both terms act at the seed
-    with_terms = gauss_newton_warm_start(on, seed, lower, upper, active, 8)
+    assert on.whole_value(seed) > self_only.whole_value(seed) + 1.0 > off.whole_value(seed) + 2.0  # both act
+    with_both = gauss_newton_warm_start(on, seed, lower, upper, active, 8)
+    with_self = gauss_newton_warm_start(self_only, seed, lower, upper, active, 8)
     without = gauss_newton_warm_start(off, seed, lower, upper, active, 8)
-    assert np.abs(with_terms - without).max() > 1e-3  # the terms would steer the warm start
+    # each term steers the warm start
+    assert np.abs(with_both - with_self).max() > 1e-3 and np.abs(with_self - without).max() > 1e-3
     # MMA with one evaluation keeps the warm start's pose (the best point it saw)
     got = solve_frame(on, seed, lower, upper, active, maxeval=1, xtol_rel=1e-4, warm_start_iterations=8,
                       kinds=[d.kind for d in rig.dofs], root_mask=[d.joint == 0 for d in rig.dofs])
-    np.testing.assert_allclose(got.q, without, rtol=0, atol=1e-10)  # rad, m
+    np.testing.assert_allclose(got.q, with_self, rtol=0, atol=1e-10)  # rad, m
     assert (on.object_collision, on.self_collision) == held
-    with pytest.raises(ZeroDivisionError):
-        with on.collision_off():
-            assert on.object_collision is None and on.self_collision is None
-            1 / 0
-    assert (on.object_collision, on.self_collision) == held
+    for keep_self in (False, True):
+        with pytest.raises(ZeroDivisionError):
+            with on.collision_off(keep_self=keep_self):
+                assert on.object_collision is None
+                assert (on.self_collision is held[1]) if keep_self else (on.self_collision is None)
+                1 / 0
+        assert (on.object_collision, on.self_collision) == held
 
 
 def test_a_frame_solve_pulls_crossed_fingers_apart(hand, rng):

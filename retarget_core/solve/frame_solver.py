@@ -45,7 +45,7 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
                 coupling: DofCoupling | None = None) -> FrameSolution:
     """Minimise the objective over the ``active`` DOFs (bool (D,)) within [lower, upper], from
     ``seed`` (D,), optionally after ``warm_start_iterations`` bounded Gauss-Newton steps
-    (:func:`gauss_newton_warm_start`) on the objective without its collision terms.
+    (:func:`gauss_newton_warm_start`) on the objective without its hand-object term.
     ``coupling``: the rig's DOF couplings, kept exactly (the
     solver moves the free DOFs; followers are computed from their leaders). ``gradient =
     "forward"`` replaces the analytic gradient by forward differences (one extra evaluation
@@ -59,12 +59,15 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
     objective.set_seed(base)
     if warm_start_iterations > 0:
         # the warm start closes the hand from the seed (the root pass's pose, fingers at rest)
-        # onto the contacts and markers; the collision terms join where MMA starts. With them in
+        # onto the contacts and markers; the hand-object term joins where MMA starts. With it in
         # the warm start, the rows of whatever sat inside the object at the open-handed seed
         # (a different few points every frame) fought the contacts: the warm-started fingers
         # jittered from frame to frame (second-difference RMS 5.9 deg against 2.0 without the
-        # terms, 1000-frame bench clip) and MMA took 30 % more evaluations to settle them
-        with objective.collision_off():
+        # terms, 1000-frame bench clip) and MMA took 30 % more evaluations to settle them.
+        # Self collision stays in: without it, contacts that pull two fingers together closed
+        # them through each other, deeper than a local solve can undo (robot4, apple_rotate:
+        # 6.4 % of the hand's volume in crossed fingers, 0.11 % with it)
+        with objective.collision_off(keep_self=True):
             base = gauss_newton_warm_start(objective, base, lower, upper, active, warm_start_iterations, coupling)
         # the warm start moves the fingers the most (from rest to the grasp): the points near the
         # table, the object or another part are picked again where MMA starts

@@ -158,11 +158,14 @@ class FrameObjective:
         return inside_all > int((box_signed_distance(self.kin.points(pose, self.sample_binding), *self.table) < 0).sum())
 
     @contextmanager
-    def collision_off(self):
-        """Within the block the objective leaves out the collision terms (G_P, G_SC); the
-        Gauss-Newton warm start runs so (see :func:`~retarget_core.solve.frame_solver.solve_frame`)."""
+    def collision_off(self, keep_self: bool = False):
+        """Within the block the objective leaves out the hand-object term G_P and, unless
+        ``keep_self``, the self collision term G_SC; the Gauss-Newton warm start keeps G_SC
+        (see :func:`~retarget_core.solve.frame_solver.solve_frame`)."""
         held = self.object_collision, self.self_collision
-        self.object_collision = self.self_collision = None
+        self.object_collision = None
+        if not keep_self:
+            self.self_collision = None
         try:
             yield self
         finally:
