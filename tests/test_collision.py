@@ -166,6 +166,36 @@ def test_object_term_of_a_hand_pushed_into_a_slab(hand):
     assert cot[:, 2].max() <= 0 and cot[:, 2].min() < 0  # pushing a point down costs more
 
 
+def test_held_depth_costs_only_what_goes_deeper(hand):
+    """After hold_depth at a pose 4 mm into a slab, that pose costs nothing; moved 1 mm further
+    down, each point inside costs (1 mm)^2 more than its held depth (its level), a point that
+    was outside only its own depth; rows and value agree; focus forgets the hold."""
+    rig, kin = hand
+    q = rig.rest_pose
+    v = kin.skin(q)
+    box = trimesh.creation.box(extents=(0.4, 0.4, 0.05))
+    top = v[:, 2].min() + 0.004
+    slab = np.eye(4)
+    slab[2, 3] = top - 0.025
+    term = ObjectCollision(kin, box.vertices, box.faces, stride=1)
+    pose = kin.pose(q)
+    term.focus(pose, slab)
+    term.hold_depth(pose, slab)
+    assert term.value_and_cot(pose, slab, 2.0)[0] == 0.0 and len(term.residuals(pose, slab, 2.0, False)[0]) == 0
+    lowered = slab.copy()
+    lowered[2, 3] += 0.001  # the slab 1 mm up: every point 1 mm deeper
+    value, _ = term.value_and_cot(pose, lowered, 2.0)
+    held = np.maximum(top - v[term.vertices[term.focused], 2], 0.0)
+    deeper = np.minimum(top + 0.001 - v[term.vertices[term.focused], 2], 0.001) * MM  # mm below each level
+    deeper = deeper[deeper > 0]
+    assert value == pytest.approx(2.0 * float(deeper @ deeper), rel=1e-6)
+    assert held.max() > 0.003 and value < 2.0 * np.sum((held * MM + 1) ** 2)  # far less than the whole term
+    r, _ = term.residuals(pose, lowered, 2.0, False)
+    assert r @ r == pytest.approx(value, rel=1e-10)
+    term.focus(pose, slab)
+    assert term.level is None and term.value_and_cot(pose, slab, 2.0)[0] > 0
+
+
 def _crossed_fingers(rig):
     q = rig.rest_pose.copy()
     for d in rig.dofs:
@@ -305,42 +335,65 @@ def test_whole_value_is_the_focused_objective_at_the_same_pose(hand, rng):
     assert terms == {"object", "self"}
 
 
-def test_the_warm_start_leaves_the_object_term_out_and_keeps_self_collision(hand, rng):
-    """solve_frame's Gauss-Newton warm start runs on the objective without G_P (it joins where
-    MMA starts) and with G_SC: from a seed with crossed fingers, where both terms act, it reaches
-    what the same objective with only G_P off reaches, not what the objective with both terms
-    or with neither reaches; both terms are back on after it, also when the block raises."""
+def test_the_warm_start_holds_the_object_depth_of_the_seed(hand):
+    """solve_frame's Gauss-Newton warm start scores the hand-object term as what goes deeper
+    than at the seed. The hand rests 4 mm into a slab and its markers pull it 10 mm further
+    down: without the term the warm start sinks in by those 10 mm, with the whole term it
+    climbs out, with the held depth it stays near where it was; MMA then sees the whole
+    term again."""
+    from retarget_core.mesh.surface_points import SurfacePoints
+    from retarget_core.solve.config import RetargetConfig
     from retarget_core.solve.frame_solver import gauss_newton_warm_start, solve_frame
+    from retarget_core.solve.objective import FrameData, FrameObjective
 
     rig, kin = hand
-    scene = int(rng.integers(1 << 31))  # the same markers and contacts in every objective
-    on, _ = _ball_scene_objective(hand, np.random.default_rng(scene), 10.0)
-    self_only, _ = _ball_scene_objective(hand, np.random.default_rng(scene), 0.0, lambda_self=10.0)
-    off, _ = _ball_scene_objective(hand, np.random.default_rng(scene), 0.0)
-    seed = _crossed_fingers(rig)
+    v = kin.skin(rig.rest_pose)
+    box = trimesh.creation.box(extents=(0.4, 0.4, 0.05))
+    top = v[:, 2].min() + 0.004
+    slab = np.eye(4)
+    slab[2, 3] = top - 0.025
+    surface = kin.rig.surface
+    faces = np.array([int(np.argmin(np.abs(v[surface.faces].mean(axis=1) - c).sum(axis=1)))
+                      for c in (v.mean(axis=0), v[v[:, 0].argmax()], v[v[:, 1].argmax()])])
+    bary = np.full((3, 3), 1.0 / 3.0)
+    markers = kin.points(rig.rest_pose, kin.bind(SurfacePoints(faces, bary))) - [0.0, 0.0, 0.010]
+
+    def objective(lambda_p):
+        cfg = RetargetConfig.preset("default")
+        cfg.weights.lambda_p, cfg.weights.lambda_sc, cfg.weights.lambda_t = lambda_p, 0.0, 0.0
+        cfg.markers.distance = "squared"
+        o = FrameObjective(rig, cfg, faces, bary, np.arange(3), np.ones(3), object_vertices=box.vertices,
+                           object_faces=box.faces)
+        none = np.zeros(0, dtype=np.int64)
+        o.set_frame(FrameData(markers, SurfacePoints(none, np.zeros((0, 3))), np.zeros((0, 3)), np.zeros((0, 3)),
+                              slab))
+        o.set_seed(rig.rest_pose)
+        o.focus_samples(rig.rest_pose)
+        return o
+
+    def depth_mm(q):
+        return (top - kin.skin(q)[:, 2].min()) * MM
+
     lower, upper, active = rig.lower, rig.upper, np.ones(rig.n_dofs, dtype=bool)
-    for objective in (on, self_only, off):
-        objective.set_seed(seed)
-        objective.focus_samples(seed)
-    held = on.object_collision, on.self_collision
-    assert on.whole_value(seed) > self_only.whole_value(seed) + 1.0 > off.whole_value(seed) + 2.0  # both act
-    with_both = gauss_newton_warm_start(on, seed, lower, upper, active, 8)
-    with_self = gauss_newton_warm_start(self_only, seed, lower, upper, active, 8)
-    without = gauss_newton_warm_start(off, seed, lower, upper, active, 8)
-    # each term steers the warm start
-    assert np.abs(with_both - with_self).max() > 1e-3 and np.abs(with_self - without).max() > 1e-3
-    # MMA with one evaluation keeps the warm start's pose (the best point it saw)
+    seed = rig.rest_pose
+    held = objective(10.0)
+    held.hold_object_depth(seed)
+    with_hold = gauss_newton_warm_start(held, seed, lower, upper, active, 8)
+    whole = gauss_newton_warm_start(objective(10.0), seed, lower, upper, active, 8)
+    without = gauss_newton_warm_start(objective(0.0), seed, lower, upper, active, 8)
+    assert depth_mm(seed) == pytest.approx(4.0)
+    assert depth_mm(without) > 12.0  # pulled 10 mm further in
+    assert depth_mm(whole) < 3.0  # pushed out
+    # held about where it was: the squared markers' pull against a squared hinge of weight 10
+    # gives a little (1.2 mm measured), not the 10 mm the term left out allows
+    assert depth_mm(whole) < depth_mm(with_hold) < 4.0 + 2.0
+    # solve_frame's warm start is the held one; MMA with one evaluation keeps its pose
+    on = objective(10.0)
     got = solve_frame(on, seed, lower, upper, active, maxeval=1, xtol_rel=1e-4, warm_start_iterations=8,
                       kinds=[d.kind for d in rig.dofs], root_mask=[d.joint == 0 for d in rig.dofs])
-    np.testing.assert_allclose(got.q, with_self, rtol=0, atol=1e-10)  # rad, m
-    assert (on.object_collision, on.self_collision) == held
-    for keep_self in (False, True):
-        with pytest.raises(ZeroDivisionError):
-            with on.collision_off(keep_self=keep_self):
-                assert on.object_collision is None
-                assert (on.self_collision is held[1]) if keep_self else (on.self_collision is None)
-                1 / 0
-        assert (on.object_collision, on.self_collision) == held
+    np.testing.assert_allclose(got.q, with_hold, rtol=0, atol=1e-10)  # rad, m
+    assert on.object_collision.level is None  # MMA scores the whole term
+    assert got.value == pytest.approx(on.value_and_grad(got.q, want_grad=False)[0], rel=1e-12)
 
 
 def test_a_frame_solve_pulls_crossed_fingers_apart(hand, rng):

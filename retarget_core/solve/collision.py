@@ -137,6 +137,7 @@ class ObjectCollision:
         self.all = kin.bind(SurfacePoints.from_vertices(self.vertices, surface.faces))
         self.focused = np.arange(len(self.vertices))
         self.binding = self.all
+        self.level = None  # (K,) m per focused point, or None: the depth that costs nothing
 
     def _sdf(self, points: np.ndarray, object_pose: np.ndarray):
         inv = np.linalg.inv(object_pose)
@@ -159,6 +160,20 @@ class ObjectCollision:
         near, d = self._below(pose, object_pose, FOCUS_MARGIN)
         self.focused = near[d < FOCUS_MARGIN]
         self.binding = self.all.subset(self.focused) if len(self.focused) else None
+        self.level = None
+
+    def hold_depth(self, pose, object_pose: np.ndarray) -> None:
+        """From now until the next :meth:`focus`, a focused point costs only where it is deeper
+        in the object than at ``pose`` (its level is min(0, its signed distance there)): a pose
+        that is already inside costs nothing, but no step may push a point further in."""
+        if self.binding is not None:
+            d, _ = self._sdf(self.kin.points(pose, self.binding), object_pose)
+            self.level = np.minimum(d, 0.0)
+
+    def _depth(self, pose, object_pose):
+        """(signed distances below each focused point's level (K,) m, world gradients (K, 3))."""
+        d, g = self._sdf(self.kin.points(pose, self.binding), object_pose)
+        return (d if self.level is None else d - self.level), g
 
     def missed(self, pose, object_pose: np.ndarray) -> bool:
         """True when a sample point left out by :meth:`focus` is inside the object at pose."""
@@ -181,8 +196,7 @@ class ObjectCollision:
         """(value, points (K, 3), cotangent (K, 3)) of lambda * G_P at the focused points."""
         if self.binding is None:
             return 0.0, None
-        x = self.kin.points(pose, self.binding)
-        d, g = self._sdf(x, object_pose)
+        d, g = self._depth(pose, object_pose)
         pen = np.maximum(-d, 0.0) * MM
         if not pen.any():
             return 0.0, None
@@ -194,7 +208,7 @@ class ObjectCollision:
         if self.binding is None:
             return None
         s = np.sqrt(weight) * MM
-        d, g = self._sdf(self.kin.points(pose, self.binding), object_pose)
+        d, g = self._depth(pose, object_pose)
         # the points outside have r = 0 and no slope: only the points inside are rows
         hit = np.flatnonzero(d < 0)
         jt = None

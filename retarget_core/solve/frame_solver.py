@@ -45,7 +45,8 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
                 coupling: DofCoupling | None = None) -> FrameSolution:
     """Minimise the objective over the ``active`` DOFs (bool (D,)) within [lower, upper], from
     ``seed`` (D,), optionally after ``warm_start_iterations`` bounded Gauss-Newton steps
-    (:func:`gauss_newton_warm_start`) on the objective without its hand-object term.
+    (:func:`gauss_newton_warm_start`), where a point costs only by going deeper into the object
+    than at the seed (:meth:`FrameObjective.hold_object_depth`).
     ``coupling``: the rig's DOF couplings, kept exactly (the
     solver moves the free DOFs; followers are computed from their leaders). ``gradient =
     "forward"`` replaces the analytic gradient by forward differences (one extra evaluation
@@ -59,16 +60,20 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
     objective.set_seed(base)
     if warm_start_iterations > 0:
         # the warm start closes the hand from the seed (the root pass's pose, fingers at rest)
-        # onto the contacts and markers; the hand-object term joins where MMA starts. With it in
-        # the warm start, the rows of whatever sat inside the object at the open-handed seed
-        # (a different few points every frame) fought the contacts: the warm-started fingers
-        # jittered from frame to frame (second-difference RMS 5.9 deg against 2.0 without the
-        # terms, 1000-frame bench clip) and MMA took 30 % more evaluations to settle them.
-        # Self collision stays in: without it, contacts that pull two fingers together closed
-        # them through each other, deeper than a local solve can undo (robot4, apple_rotate:
-        # 6.4 % of the hand's volume in crossed fingers, 0.11 % with it)
-        with objective.collision_off(keep_self=True):
-            base = gauss_newton_warm_start(objective, base, lower, upper, active, warm_start_iterations, coupling)
+        # onto the contacts and markers. The hand-object term counts there only what pushes a
+        # point deeper than it sat at the seed; the whole term joins where MMA starts:
+        # - in full, the rows of whatever sat inside the object at the open-handed seed (a
+        #   different few points every frame) fought the contacts: the warm-started fingers
+        #   jittered from frame to frame (second-difference RMS 5.9 deg against 2.0 without the
+        #   terms, 1000-frame bench clip) and MMA took 30 % more evaluations to settle them;
+        # - left out (stops 34-35), the contacts and markers pulled the hand through the object,
+        #   deeper than MMA's local steps undo (robot4 on hammer_power: the palm 12 mm into the
+        #   hammer from frame 108 on, from seeds 3 mm in);
+        # self collision stays in whole (at the seed the fingers are at rest): without it,
+        # contacts that pull two fingers together closed them through each other (robot4 on
+        # apple_rotate: self intersection median 6.4 % of the hand's volume, 0.11 % with it)
+        objective.hold_object_depth(base)
+        base = gauss_newton_warm_start(objective, base, lower, upper, active, warm_start_iterations, coupling)
         # the warm start moves the fingers the most (from rest to the grasp): the points near the
         # table, the object or another part are picked again where MMA starts
         objective.focus_samples(base)

@@ -157,15 +157,19 @@ class FrameObjective:
             return inside_all > 0
         return inside_all > int((box_signed_distance(self.kin.points(pose, self.sample_binding), *self.table) < 0).sum())
 
+    def hold_object_depth(self, q: np.ndarray) -> None:
+        """Until the next :meth:`focus_samples`, the hand-object term costs only what pushes a
+        point deeper into the object than at pose q (D,) (:meth:`ObjectCollision.hold_depth`):
+        the Gauss-Newton warm start's form of it (see
+        :func:`~retarget_core.solve.frame_solver.solve_frame`)."""
+        if self.object_collision is not None and self.frame is not None and self.frame.object_pose is not None:
+            self.object_collision.hold_depth(self.kin.pose(q), self.frame.object_pose)
+
     @contextmanager
-    def collision_off(self, keep_self: bool = False):
-        """Within the block the objective leaves out the hand-object term G_P and, unless
-        ``keep_self``, the self collision term G_SC; the Gauss-Newton warm start keeps G_SC
-        (see :func:`~retarget_core.solve.frame_solver.solve_frame`)."""
+    def collision_off(self):
+        """Within the block the objective leaves out the collision terms (G_P, G_SC)."""
         held = self.object_collision, self.self_collision
-        self.object_collision = None
-        if not keep_self:
-            self.self_collision = None
+        self.object_collision = self.self_collision = None
         try:
             yield self
         finally:
