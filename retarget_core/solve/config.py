@@ -480,17 +480,19 @@ class RetargetConfig:
         contact median within 0.1 mm (LEAP 4.69 -> 4.65 mm, alien 1.71 -> 1.62, witch 1.94 ->
         1.98), LEAP's self intersection rose from 8.2 to 10.7 %, robot4's fell from 4.6 to 4.0 %;
         (9) the collision terms are built but off (``weights.lambda_p``, ``weights.lambda_sc``).
-        Since the warm start leaves them out (stop 34) they cost 1.22x the solving stages on
-        the bench's 1000 frames (``handretarget bench --collision``), within the 1.5x goal; on
-        in this preset (tried at stop 34) they broke the mirror test's vertex bound (left hand
-        against the mirrored right: 2.60 mm at worst against 2 mm, mean 0.77 mm within its
-        1 mm) and tripled the LEAP two-branch test (597 s), so they wait. With lambda_p = 10
-        and lambda_sc = 10 (every 4th vertex for the penetration term, 32 sample vertices per
-        hand part for self collision) robot4 on
+        On (tried at stop 34) they broke the mirror test's vertex bound (left hand against the
+        mirrored right; at stop 36, with exact distance grids and an exactly mirror-symmetric
+        bottle, still 1.06 mm mean at worst against 1 mm: a middle finger pinned at its
+        abduction limits flips to the other side in some frames of one hand) and tripled the
+        LEAP two-branch test; with the warm start of stop 36 (held object depth, self
+        collision whole: no palm 12 mm into a hammer, no fingers through each other) they cost
+        2.3-2.6x the solving stages of the bench (``handretarget bench --collision``; the goal
+        is 1.5x). With lambda_p = 10 and lambda_sc = 10 (every 4th vertex for the penetration
+        term, 32 sample vertices per hand part for self collision) robot4 on
         bottle_pick_place (120 frames, exact measures over the contact frames) went from 31.4 mm
         p95 penetration and 1.65 % median self intersection to 1.74 mm and 0.0006 %, contact
         error 3.50 -> 3.94 mm; prosthetic_1dof 1.60 -> 0.90 mm p95 (contact 2.13 -> 2.20),
-        human_alt 0.67 -> 0.58 (contact 1.61 -> 1.62).
+        human_alt 0.67 -> 0.58 (contact 1.61 -> 1.62); the README's grid table has every hand.
 
     Top-level key ``method``: ``"contacts"`` (the paper) or a contact-free baseline
     (:data:`METHODS`); the settings a baseline does not use in its finger passes are listed in
@@ -603,7 +605,7 @@ def _default() -> RetargetConfig:
     cfg.refinement.resolve_tolerance_angular = 0.5  # re-solve only frames the filter really moved
     cfg.refinement.resolve_tolerance_linear = 0.05
     cfg.sampling.table_sample_stride = 3  # a third of the hand's vertices feel the table
-    # collision terms (objective, collision.py): off (1.22x at stop 34, but see note 9);
+    # collision terms (objective, collision.py): off (see note 9);
     # the sampling is what --set weights.lambda_p=10 --set weights.lambda_sc=10 then uses
     cfg.sampling.penetration_sample_stride = 4
     cfg.fit.respect_limits = True  # curves a rig (or a robot) can play back
