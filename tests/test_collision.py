@@ -149,16 +149,23 @@ def test_rigid_point_jacobian_and_vjp_match_finite_differences(hand, rng):
     assert np.allclose(kin.rigid_points_vjp(pose, joints, world, c), np.einsum("dak,ka->d", jac, c))
 
 
+def _slab_under(v):
+    """A 40 x 40 x 5 cm slab whose top is 4 mm above the lowest of the hand's vertices v (V, 3):
+    (the slab's mesh, its top's height m, its pose (4, 4))."""
+    box = trimesh.creation.box(extents=(0.4, 0.4, 0.05))
+    top = v[:, 2].min() + 0.004
+    pose = np.eye(4)
+    pose[2, 3] = top - 0.025
+    return box, top, pose
+
+
 def test_object_term_of_a_hand_pushed_into_a_slab(hand):
     """The hand's lowest points h below the top of a big slab: the term is the sum over the
     sample points inside of (depth in mm)^2, each depth its height under the top."""
     rig, kin = hand
     q = rig.rest_pose
     v = kin.skin(q)
-    box = trimesh.creation.box(extents=(0.4, 0.4, 0.05))
-    top = v[:, 2].min() + 0.004
-    pose = np.eye(4)
-    pose[2, 3] = top - 0.025
+    box, top, pose = _slab_under(v)
     term = ObjectCollision(kin, box.vertices, box.faces, stride=1)
     value, cot = term.value_and_cot(kin.pose(q), pose, weight=2.0)
     depth = np.maximum(top - v[:, 2], 0.0) * MM
@@ -173,10 +180,7 @@ def test_held_depth_costs_only_what_goes_deeper(hand):
     rig, kin = hand
     q = rig.rest_pose
     v = kin.skin(q)
-    box = trimesh.creation.box(extents=(0.4, 0.4, 0.05))
-    top = v[:, 2].min() + 0.004
-    slab = np.eye(4)
-    slab[2, 3] = top - 0.025
+    box, top, slab = _slab_under(v)
     term = ObjectCollision(kin, box.vertices, box.faces, stride=1)
     pose = kin.pose(q)
     term.focus(pose, slab)
@@ -348,10 +352,7 @@ def test_the_warm_start_holds_the_object_depth_of_the_seed(hand):
 
     rig, kin = hand
     v = kin.skin(rig.rest_pose)
-    box = trimesh.creation.box(extents=(0.4, 0.4, 0.05))
-    top = v[:, 2].min() + 0.004
-    slab = np.eye(4)
-    slab[2, 3] = top - 0.025
+    box, top, slab = _slab_under(v)
     surface = kin.rig.surface
     faces = np.array([int(np.argmin(np.abs(v[surface.faces].mean(axis=1) - c).sum(axis=1)))
                       for c in (v.mean(axis=0), v[v[:, 0].argmax()], v[v[:, 1].argmax()])])
