@@ -343,11 +343,11 @@ def test_the_warm_start_holds_the_object_depth_of_the_seed(hand):
     """solve_frame's Gauss-Newton warm start scores the hand-object term as what goes deeper
     than at the seed. The hand rests 4 mm into a slab and its markers pull it 10 mm further
     down: without the term the warm start sinks in by those 10 mm, with the whole term it
-    climbs out, with the held depth it stays near where it was; MMA then sees the whole
-    term again."""
+    climbs out, with the held depth it stays near where it was; a few steps on the whole term
+    follow, and MMA then sees the whole term again."""
     from retarget_core.mesh.surface_points import SurfacePoints
     from retarget_core.solve.config import RetargetConfig
-    from retarget_core.solve.frame_solver import gauss_newton_warm_start, solve_frame
+    from retarget_core.solve.frame_solver import WHOLE_OBJECT_ITERATIONS, gauss_newton_warm_start, solve_frame
     from retarget_core.solve.objective import FrameData, FrameObjective
 
     rig, kin = hand
@@ -388,11 +388,16 @@ def test_the_warm_start_holds_the_object_depth_of_the_seed(hand):
     # held about where it was: the squared markers' pull against a squared hinge of weight 10
     # gives a little (1.2 mm measured), not the 10 mm the term left out allows
     assert depth_mm(whole) < depth_mm(with_hold) < 4.0 + 2.0
-    # solve_frame's warm start is the held one; MMA with one evaluation keeps its pose
+    # solve_frame's warm start is the held one, then a few steps on the whole term from where
+    # it closed (they push out what the seed had in); MMA with one evaluation keeps that pose
+    then = objective(10.0)
+    then.focus_samples(with_hold)
+    expected = gauss_newton_warm_start(then, with_hold, lower, upper, active, WHOLE_OBJECT_ITERATIONS)
+    assert depth_mm(expected) < depth_mm(with_hold) - 0.5
     on = objective(10.0)
     got = solve_frame(on, seed, lower, upper, active, maxeval=1, xtol_rel=1e-4, warm_start_iterations=8,
                       kinds=[d.kind for d in rig.dofs], root_mask=[d.joint == 0 for d in rig.dofs])
-    np.testing.assert_allclose(got.q, with_hold, rtol=0, atol=1e-10)  # rad, m
+    np.testing.assert_allclose(got.q, expected, rtol=0, atol=1e-10)  # rad, m
     assert on.object_collision.level is None  # MMA scores the whole term
     assert got.value == pytest.approx(on.value_and_grad(got.q, want_grad=False)[0], rel=1e-12)
 

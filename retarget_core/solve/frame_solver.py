@@ -11,6 +11,8 @@ from ..rig.coupling import DofCoupling
 from .objective import FrameObjective
 
 ROOT_TRANSLATION_WINDOW = 0.05  # metres around the seed
+#: Gauss-Newton steps on the whole hand-object term after the held warm start (see solve_frame).
+WHOLE_OBJECT_ITERATIONS = 5
 ROOT_ROTATION_WINDOW = 0.6  # radians around the seed
 
 #: What a frame solve may fail with numerically: nlopt's generic failure (RuntimeError) and
@@ -46,7 +48,8 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
     """Minimise the objective over the ``active`` DOFs (bool (D,)) within [lower, upper], from
     ``seed`` (D,), optionally after ``warm_start_iterations`` bounded Gauss-Newton steps
     (:func:`gauss_newton_warm_start`), where a point costs only by going deeper into the object
-    than at the seed (:meth:`FrameObjective.hold_object_depth`).
+    than at the seed (:meth:`FrameObjective.hold_object_depth`), then, with the hand-object term
+    on, :data:`WHOLE_OBJECT_ITERATIONS` more on the whole term.
     ``coupling``: the rig's DOF couplings, kept exactly (the
     solver moves the free DOFs; followers are computed from their leaders). ``gradient =
     "forward"`` replaces the analytic gradient by forward differences (one extra evaluation
@@ -77,6 +80,12 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
         # the warm start moves the fingers the most (from rest to the grasp): the points near the
         # table, the object or another part are picked again where MMA starts
         objective.focus_samples(base)
+        if objective.object_collision is not None:
+            # closed on its contacts, the hand's rows inside the object are real penetrations
+            # (not the open hand's): a few steps on the whole term push out what the seed had in
+            # (LEAP on hammer_power: p95 penetration 16.5 -> 3.6 mm, contact 8.2 -> 4.8 mm)
+            base = gauss_newton_warm_start(objective, base, lower, upper, active, WHOLE_OBJECT_ITERATIONS,
+                                           coupling)
     n = int(active.sum())
     best = {"value": np.inf, "q": base.copy()}
     start_evals = objective.evaluations
