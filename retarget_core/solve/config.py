@@ -487,7 +487,7 @@ class RetargetConfig:
         LEAP two-branch test; with the warm start of stop 36 (held object depth, self
         collision whole: no palm 12 mm into a hammer, no fingers through each other) they cost
         2.3-2.6x the solving stages of the bench (``handretarget bench --collision``; the goal
-        is 1.5x). With lambda_p = 10 and lambda_sc = 10 (every 4th vertex for the penetration
+        is 1.5x; measured before the warm start's whole-term steps were added). With lambda_p = 10 and lambda_sc = 10 (every 4th vertex for the penetration
         term, 32 sample vertices per hand part for self collision) robot4 on
         bottle_pick_place (120 frames, exact measures over the contact frames) went from 31.4 mm
         p95 penetration and 1.65 % median self intersection to 1.74 mm and 0.0006 %, contact
