@@ -11,9 +11,9 @@ from ..rig.coupling import DofCoupling
 from .objective import FrameObjective
 
 ROOT_TRANSLATION_WINDOW = 0.05  # metres around the seed
+ROOT_ROTATION_WINDOW = 0.6  # radians around the seed
 #: Gauss-Newton steps on the whole hand-object term after the held warm start (see solve_frame).
 WHOLE_OBJECT_ITERATIONS = 5
-ROOT_ROTATION_WINDOW = 0.6  # radians around the seed
 
 #: What a frame solve may fail with numerically: nlopt's generic failure (RuntimeError) and
 #: forced stop, floating-point and linear-algebra errors. Only these make a "failed frame";
