@@ -1,8 +1,12 @@
 """Collision terms of the per-frame objective (beyond the paper), as squared hinges in mm^2:
 
-- G_P, hand-object penetration: sum over hand sample points x of max(0, -sdf_O(x))^2, sdf_O the
-  object's signed distance sampled once per run on a grid in the object's frame
-  (:mod:`retarget_core.mesh.sdf_grid`), queried by trilinear interpolation;
+- G_P, hand-object penetration, both ways: sum over hand sample points x of max(0, -sdf_O(x))^2,
+  sdf_O the object's signed distance sampled once per run on a grid in the object's frame
+  (:mod:`retarget_core.mesh.sdf_grid`), queried by trilinear interpolation
+  (:class:`ObjectCollision`); plus, over object sample points y, max(0, -sdf_B(y))^2 for the hand
+  part B it is in, a part's grid as for G_SC (:class:`ObjectInHand`): a box corner or a mug
+  handle pokes into a finger between the hand's sample points, where the first half cannot see
+  it;
 - G_SC, self collision: for every pair of hand parts that do not share a surface edge
   (:mod:`retarget_core.rig.parts`: fingers, phalanges, robot links), sum over the sample points
   x of one part of max(0, -sdf_B(x))^2, sdf_B the other part's signed distance sampled at rest
@@ -40,6 +44,9 @@ PART_SPACING = 0.0025
 PART_MARGIN = 0.005
 #: At the seed, points farther than this (m) from the other body are left out of the solve.
 FOCUS_MARGIN = 0.005
+#: Object sample points for the object-into-hand half of G_P: one object vertex per cube of this
+#: edge (m). The demo objects' edges are about 2 mm; a dense scan is thinned to this.
+OBJECT_POINT_SPACING = 0.002
 
 
 @dataclass(frozen=True)
@@ -101,7 +108,8 @@ def _cached(key, build):
 
 
 def collision_grids(rig, object_vertices, object_faces, config) -> CollisionGrids:
-    """The grids the configuration's collision terms need (none when both are off), cached by
+    """The grids the configuration's collision terms need (none when both are off: the object's
+    for G_P, the parts' for G_SC and for the object-into-hand half of G_P), cached by
     the content of the object and of the rig's surface, skin and rest frames."""
     from ..rig.parts import rig_parts
 
@@ -110,7 +118,7 @@ def collision_grids(rig, object_vertices, object_faces, config) -> CollisionGrid
         obj = _cached(("object", _digest(object_vertices, object_faces)),
                       lambda: object_grid(object_vertices, object_faces))
     parts = grids = None
-    if config.weights.lambda_sc > 0:
+    if config.weights.lambda_sc > 0 or config.weights.lambda_p > 0:  # both need the parts' grids
         kin = rig.kinematics()
         s = rig.surface
         key = ("parts", _digest(s.vertices, s.faces, s.joint_indices, s.joint_weights, kin.bind_world),
@@ -217,6 +225,150 @@ class ObjectCollision:
             if len(hit):
                 _, jx = self.kin.points_jacobian(pose, self.binding.subset(hit))
                 jt = -s * np.einsum("pad,pa->dp", jx, g[hit])
+        return -s * d[hit], jt
+
+
+def object_sample_points(vertices: np.ndarray, spacing: float = OBJECT_POINT_SPACING) -> np.ndarray:
+    """Ids (K,) of the object's vertices (V, 3) m kept as sample points: the first vertex (lowest
+    id, so the choice is the same on every machine) in each occupied cube of ``spacing`` m."""
+    v = np.asarray(vertices, dtype=np.float64)
+    cell = np.floor((v - v.min(axis=0)) / spacing).astype(np.int64)
+    _, first = np.unique(cell, axis=0, return_index=True)
+    return np.sort(first)
+
+
+class ObjectInHand:
+    """The object-into-hand half of G_P for one rig and object: object sample points y
+    (:func:`object_sample_points`, fixed in the object's frame) against the hand parts' grids
+    (each rigid in its joint's frame, as for G_SC). An item is a (point, part) pair; the term is
+    lambda * sum over items of (mm * max(0, -sdf_part(y)))^2. ``parts`` and ``grids`` when built
+    already (:func:`collision_grids`)."""
+
+    def __init__(self, kin, object_vertices: np.ndarray, parts=None, grids: SdfGrids | None = None):
+        from ..rig.parts import rig_parts
+
+        self.kin = kin
+        if parts is None:
+            parts, grids = rig_parts(kin.rig), None
+        self.parts = parts
+        self.grids = grids if grids is not None else part_grids(kin, parts)
+        self.part_joint = np.array([kin.rig.joint_index(n) for n in parts.names], dtype=np.int64)
+        self.points = np.asarray(object_vertices, dtype=np.float64)[object_sample_points(object_vertices)]
+        self.grid_centre, self.grid_radius = grid_spheres(self.grids)
+        self.item_point = self.item_grid = np.zeros(0, np.int64)
+        self.focused_all = True  # until the first focus, which the first evaluation then makes
+        self.level = None  # (K,) m per focused item, or None: the depth that costs nothing
+
+    @property
+    def n_points(self) -> int:
+        return len(self.points)
+
+    def _world(self, object_pose: np.ndarray) -> np.ndarray:
+        return self.points @ object_pose[:3, :3].T + object_pose[:3, 3]
+
+    def _candidates(self, pose, y: np.ndarray):
+        """(points (K,), grids (K,)) of the items whose point y lies within its part's grid
+        sphere at pose; every other item reads FAR."""
+        world = pose.world[self.part_joint]  # (G, 4, 4)
+        centre = np.einsum("gab,gb->ga", world[:, :3, :3], self.grid_centre) + world[:, :3, 3]
+        lo, hi = y.min(axis=0), y.max(axis=0)  # most parts are far from the whole object
+        gap = np.linalg.norm(np.maximum(np.maximum(lo - centre, centre - hi), 0.0), axis=1)
+        near = np.flatnonzero(gap <= self.grid_radius)
+        if not len(near):
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        d2 = np.sum((y[None, :, :] - centre[near, None, :]) ** 2, axis=2)  # (G', K0)
+        g, p = np.nonzero(d2 <= self.grid_radius[near, None] ** 2)
+        return p, near[g]
+
+    def _local(self, pose, y: np.ndarray, grid: np.ndarray) -> np.ndarray:
+        world = pose.world[self.part_joint[grid]]
+        return np.einsum("kba,kb->ka", world[:, :3, :3], y - world[:, :3, 3])
+
+    def _below(self, pose, object_pose: np.ndarray, level: float):
+        """(points (K,), grids (K,), signed distances (K,) m) of the items that may read below
+        ``level`` m at pose; every other item reads ``level`` or more."""
+        y = self._world(object_pose)
+        p, g = self._candidates(pose, y)
+        local = self._local(pose, y[p], g)
+        near = self.grids.maybe_below(local, level, g)
+        d, _ = self.grids.query(local[near], g[near])
+        return p[near], g[near], d
+
+    def focus(self, pose, object_pose: np.ndarray) -> None:
+        p, g, d = self._below(pose, object_pose, FOCUS_MARGIN)
+        keep = d < FOCUS_MARGIN
+        self.item_point, self.item_grid = p[keep], g[keep]
+        self.focused_all = False
+        self.level = None
+
+    def _sdf(self, pose, object_pose: np.ndarray):
+        """At the focused items: (distances below each item's level (K,) m, world gradients
+        (K, 3), world points (K, 3), the joints of the grids' frames (K,))."""
+        y = self._world(object_pose)[self.item_point]
+        world = pose.world[self.part_joint[self.item_grid]]
+        local = np.einsum("kba,kb->ka", world[:, :3, :3], y - world[:, :3, 3])
+        d, g = self.grids.query(local, self.item_grid)
+        gw = np.einsum("kab,kb->ka", world[:, :3, :3], g)
+        return (d if self.level is None else d - self.level), gw, y, self.part_joint[self.item_grid]
+
+    def hold_depth(self, pose, object_pose: np.ndarray) -> None:
+        """As :meth:`ObjectCollision.hold_depth`: until the next :meth:`focus`, an item costs
+        only where its point is deeper in the part than at ``pose``."""
+        if self.focused_all:
+            self.focus(pose, object_pose)
+        self.level = None
+        if len(self.item_point):
+            self.level = np.minimum(self._sdf(pose, object_pose)[0], 0.0)
+
+    def missed(self, pose, object_pose: np.ndarray) -> bool:
+        """True when an item left out by :meth:`focus` reads inside its part at pose."""
+        p, g, d = self._below(pose, object_pose, 0.0)
+        inside = d < 0
+        if not inside.any():
+            return False
+        n = len(self.grid_radius)
+        return bool(np.setdiff1d(p[inside] * n + g[inside], self.item_point * n + self.item_grid).size)
+
+    def whole_value(self, pose, object_pose: np.ndarray, weight: float) -> float:
+        """lambda * this half of G_P over every item at pose (no focus needed)."""
+        _, _, d = self._below(pose, object_pose, 0.0)
+        pen = np.maximum(-d, 0.0) * MM
+        return weight * float(pen @ pen)
+
+    def value_and_grad(self, pose, object_pose: np.ndarray, weight: float, want_grad: bool):
+        """(lambda * this half of G_P, its gradient (D,) or None) at the focused items. The
+        point is fixed in the world; the part's frame moves with q, which from the frame reads
+        as the point moving the other way (:meth:`Kinematics.rigid_points_vjp`)."""
+        if self.focused_all:
+            self.focus(pose, object_pose)
+        if not len(self.item_point):
+            return 0.0, None
+        d, gw, y, joint = self._sdf(pose, object_pose)
+        pen = np.maximum(-d, 0.0) * MM
+        hit = pen > 0
+        if not hit.any():
+            return 0.0, None
+        value = weight * float(pen @ pen)
+        if not want_grad:
+            return value, None
+        c = (-2.0 * weight * MM) * pen[hit, None] * gw[hit]
+        return value, -self.kin.rigid_points_vjp(pose, joint[hit], y[hit], c)
+
+    def residuals(self, pose, object_pose: np.ndarray, weight: float, jacobian: bool):
+        """(r (H,), dr/dq transposed (D, H) or None) over the focused items inside their part."""
+        if self.focused_all:
+            self.focus(pose, object_pose)
+        if not len(self.item_point):
+            return None
+        s = np.sqrt(weight) * MM
+        d, gw, y, joint = self._sdf(pose, object_pose)
+        hit = np.flatnonzero(d < 0)
+        jt = None
+        if jacobian:
+            jt = np.zeros((self.kin.n_dofs, 0))
+            if len(hit):
+                jr = self.kin.rigid_points_jacobian(pose, joint[hit], y[hit])  # (D, 3, H)
+                jt = s * np.einsum("dah,ha->dh", jr, gw[hit])
         return -s * d[hit], jt
 
 

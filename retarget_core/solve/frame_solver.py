@@ -48,8 +48,8 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
     """Minimise the objective over the ``active`` DOFs (bool (D,)) within [lower, upper], from
     ``seed`` (D,), optionally after ``warm_start_iterations`` bounded Gauss-Newton steps
     (:func:`gauss_newton_warm_start`), where a point costs only by going deeper into the object
-    than at the seed (:meth:`FrameObjective.hold_object_depth`), then, with the hand-object term
-    on, :data:`WHOLE_OBJECT_ITERATIONS` more on the whole term.
+    than at the seed (:meth:`FrameObjective.hold_object_depth`), then, when the hand and the
+    object then overlap, :data:`WHOLE_OBJECT_ITERATIONS` more on the whole term.
     ``coupling``: the rig's DOF couplings, kept exactly (the
     solver moves the free DOFs; followers are computed from their leaders). ``gradient =
     "forward"`` replaces the analytic gradient by forward differences (one extra evaluation
@@ -80,10 +80,11 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
         # the warm start moves the fingers the most (from rest to the grasp): the points near the
         # table, the object or another part are picked again where MMA starts
         objective.focus_samples(base)
-        if objective.object_collision is not None:
+        if objective.object_penetration(base) > 0:
             # closed on its contacts, the hand's rows inside the object are real penetrations
             # (not the open hand's): a few steps on the whole term push out what the seed had in
-            # (LEAP on hammer_power: p95 penetration 16.5 -> 3.6 mm, contact 8.2 -> 4.8 mm)
+            # (LEAP on hammer_power: p95 penetration 16.5 -> 3.6 mm, contact 8.2 -> 4.8 mm).
+            # Nothing in: MMA starts from the held warm start
             base = gauss_newton_warm_start(objective, base, lower, upper, active, WHOLE_OBJECT_ITERATIONS,
                                            coupling)
     n = int(active.sum())

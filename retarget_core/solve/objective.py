@@ -36,7 +36,7 @@ import numpy as np
 from ..mesh.geometry import box_signed_distance, box_signed_distance_and_gradient
 from ..mesh.surface_points import SurfacePoints
 from ..rig.model import Rig
-from .collision import CollisionGrids, ObjectCollision, SelfCollision
+from .collision import CollisionGrids, ObjectCollision, ObjectInHand, SelfCollision
 from .config import RetargetConfig
 
 MM = 1000.0
@@ -89,11 +89,14 @@ class FrameObjective:
         self.root_reference = rig.rest_pose.copy()
         self.gauge_direction = np.zeros(int(self.root_rotation.sum()))
         self.gauge_weight = 0.0
-        self.object_collision = None
+        self.object_collision = self.object_in_hand = None  # the two halves of G_P
         if w.lambda_p > 0 and object_vertices is not None:
             self.object_collision = ObjectCollision(self.kin, object_vertices, object_faces,
                                                     penetration_stride or config.sampling.penetration_sample_stride,
                                                     grids=None if collision is None else collision.object)
+            self.object_in_hand = ObjectInHand(self.kin, object_vertices,
+                                               parts=None if collision is None else collision.parts,
+                                               grids=None if collision is None else collision.part_grids)
         # ``self_collision`` False: a stage that moves the root only (the hand's own shape is fixed)
         self.self_collision = None
         if w.lambda_sc > 0 and self_collision:
@@ -133,6 +136,7 @@ class FrameObjective:
         pose = self.kin.pose(q)
         if self.object_collision is not None and self.frame is not None and self.frame.object_pose is not None:
             self.object_collision.focus(pose, self.frame.object_pose)
+            self.object_in_hand.focus(pose, self.frame.object_pose)
         if self.self_collision is not None:
             self.self_collision.focus(pose)
         if self.table is None:
@@ -146,7 +150,8 @@ class FrameObjective:
         table, the object or another part (the focused objective then differs from the whole one)."""
         pose = self.kin.pose(q)
         if (self.object_collision is not None and self.frame is not None and self.frame.object_pose is not None
-                and self.object_collision.missed(pose, self.frame.object_pose)):
+                and (self.object_collision.missed(pose, self.frame.object_pose)
+                     or self.object_in_hand.missed(pose, self.frame.object_pose))):
             return True
         if self.self_collision is not None and self.self_collision.missed(pose):
             return True
@@ -163,17 +168,28 @@ class FrameObjective:
         the Gauss-Newton warm start's form of it (see
         :func:`~retarget_core.solve.frame_solver.solve_frame`)."""
         if self.object_collision is not None and self.frame is not None and self.frame.object_pose is not None:
-            self.object_collision.hold_depth(self.kin.pose(q), self.frame.object_pose)
+            pose = self.kin.pose(q)
+            self.object_collision.hold_depth(pose, self.frame.object_pose)
+            self.object_in_hand.hold_depth(pose, self.frame.object_pose)
+
+    def object_penetration(self, q: np.ndarray) -> float:
+        """lambda_p * G_P (both halves) at pose q (D,) over the focused points: 0 when no point
+        of the hand is in the object nor of the object in the hand (or the term is off)."""
+        if self.object_collision is None or self.frame is None or self.frame.object_pose is None:
+            return 0.0
+        pose = self.kin.pose(q)
+        return (self.object_collision.value_and_cot(pose, self.frame.object_pose, self.w.lambda_p)[0]
+                + self.object_in_hand.value_and_grad(pose, self.frame.object_pose, self.w.lambda_p, False)[0])
 
     @contextmanager
     def collision_off(self):
         """Within the block the objective leaves out the collision terms (G_P, G_SC)."""
-        held = self.object_collision, self.self_collision
-        self.object_collision = self.self_collision = None
+        held = self.object_collision, self.object_in_hand, self.self_collision
+        self.object_collision = self.object_in_hand = self.self_collision = None
         try:
             yield self
         finally:
-            self.object_collision, self.self_collision = held
+            self.object_collision, self.object_in_hand, self.self_collision = held
 
     # ---- the terms -----------------------------------------------------------------------------
     def whole_value(self, q: np.ndarray) -> float:
@@ -190,6 +206,7 @@ class FrameObjective:
         pose = self.kin.pose(q)
         if self.object_collision is not None and self.frame.object_pose is not None:
             value += self.object_collision.whole_value(pose, self.frame.object_pose, self.w.lambda_p)
+            value += self.object_in_hand.whole_value(pose, self.frame.object_pose, self.w.lambda_p)
         if self.self_collision is not None:
             value += self.self_collision.whole_value(pose, self.w.lambda_sc)
         return value
@@ -242,6 +259,10 @@ class FrameObjective:
             value += v
             if want_grad and cot is not None:
                 grad += kin.points_vjp(pose, self.object_collision.binding, cot)
+            v, g = self.object_in_hand.value_and_grad(pose, data.object_pose, w.lambda_p, want_grad)
+            value += v
+            if g is not None:
+                grad += g
         if self.self_collision is not None:
             v, g = self.self_collision.value_and_grad(pose, w.lambda_sc, want_grad)
             value += v
@@ -337,9 +358,10 @@ class FrameObjective:
                 blocks.append((r, None if jn is None else
                                np.einsum("dap,pa->dp", jn.transpose(2, 1, 0), data.object_normals) * (k / (2 * r))))
         if self.object_collision is not None and data.object_pose is not None:
-            block = self.object_collision.residuals(pose, data.object_pose, w.lambda_p, jacobian)
-            if block is not None:
-                blocks.append(block)
+            for term in (self.object_collision, self.object_in_hand):
+                block = term.residuals(pose, data.object_pose, w.lambda_p, jacobian)
+                if block is not None:
+                    blocks.append(block)
         if self.self_collision is not None:
             block = self.self_collision.residuals(pose, w.lambda_sc, jacobian)
             if block is not None:
