@@ -240,3 +240,15 @@ def test_importing_the_cli_imports_neither_the_service_nor_fastapi(tmp_path):
     result = _run([sys.executable, "-c", code], tmp_path)
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "[]"
+
+
+def test_bench_refuses_a_negative_speedup_frame_count(capsys):
+    """``--speedup-frames 0`` skips the gradient speed-up (the bench prints "not measured");
+    a negative count is refused by the parser with the reason, before any work."""
+    from retarget_core.cli import build_parser
+
+    assert build_parser().parse_args(["bench", "--speedup-frames", "0"]).speedup_frames == 0
+    with pytest.raises(SystemExit) as stop:
+        build_parser().parse_args(["bench", "--speedup-frames", "-2"])
+    assert stop.value.code == 2
+    assert "must be 0 or more, got -2" in capsys.readouterr().err

@@ -106,7 +106,8 @@ def run_retarget_benchmark(n_frames: int = 1000, target: str = "human_alt", work
                            collision: bool = False) -> dict:
     """Time every stage of :func:`retarget_core.pipeline.retarget` on a ~``n_frames`` demo clip
     onto the demo hand ``target``; peak resident memory of the process tree while it runs;
-    then the gradient speed-up on ``speedup_frames`` contact frames of the same clip. With
+    then the gradient speed-up on ``speedup_frames`` contact frames of the same clip (0: not
+    measured, ``gradient`` None). With
     ``collision_off`` (and the collision terms on in the preset, or ``collision``: on with
     :data:`~retarget_core.solve.config.COLLISION_WEIGHTS`) the same run again without them
     (lambda_p = lambda_sc = 0): what the terms cost."""
@@ -134,8 +135,10 @@ def run_retarget_benchmark(n_frames: int = 1000, target: str = "human_alt", work
             without = retarget(inputs, plain, Executor(workers=int(workers)))
         off = {"timings": without.timings, "summary": without.summary, "counts": without.counts,
                "peak_memory_bytes": memory_off.peak}
-    speed = gradient_speedup(clip, source, target_rig, annotations, RetargetConfig.preset("paper"),
-                             n_frames=speedup_frames)
+    speed = None  # speedup_frames = 0: not measured
+    if speedup_frames > 0:
+        speed = gradient_speedup(clip, source, target_rig, annotations, RetargetConfig.preset("paper"),
+                                 n_frames=speedup_frames)
     return {
         "frames": clip.n_frames, "fps": float(clip.fps), "target": target, "dofs": target_rig.n_dofs,
         "target_vertices": int(target_rig.surface.n_vertices), "workers": int(workers), "preset": preset,

@@ -29,6 +29,7 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..mesh.sdf_grid import SdfGrids
 from ..mesh.surface_points import SurfacePoints
@@ -254,6 +255,7 @@ class ObjectInHand:
         self.grids = grids if grids is not None else part_grids(kin, parts)
         self.part_joint = np.array([kin.rig.joint_index(n) for n in parts.names], dtype=np.int64)
         self.points = np.asarray(object_vertices, dtype=np.float64)[object_sample_points(object_vertices)]
+        self.tree = cKDTree(self.points)  # in the object's frame: which points are near a part
         self.grid_centre, self.grid_radius = grid_spheres(self.grids)
         self.item_point = self.item_grid = np.zeros(0, np.int64)
         self.focused_all = True  # until the first focus, which the first evaluation then makes
@@ -263,22 +265,26 @@ class ObjectInHand:
     def n_points(self) -> int:
         return len(self.points)
 
-    def _world(self, object_pose: np.ndarray) -> np.ndarray:
-        return self.points @ object_pose[:3, :3].T + object_pose[:3, 3]
+    def _world(self, object_pose: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """The world positions (K, 3) of the sample points ``points`` (K,) at the object's pose."""
+        return self.points[points] @ object_pose[:3, :3].T + object_pose[:3, 3]
 
-    def _candidates(self, pose, y: np.ndarray):
-        """(points (K,), grids (K,)) of the items whose point y lies within its part's grid
-        sphere at pose; every other item reads FAR."""
+    def _candidates(self, pose, object_pose: np.ndarray):
+        """(points (K,), grids (K,)) of the items whose point lies within its part's grid
+        sphere at pose; every other item reads FAR. Each sphere is looked up in the object's
+        frame in a k-d tree of the points, so a big object costs only its points near the hand."""
         world = pose.world[self.part_joint]  # (G, 4, 4)
         centre = np.einsum("gab,gb->ga", world[:, :3, :3], self.grid_centre) + world[:, :3, 3]
-        lo, hi = y.min(axis=0), y.max(axis=0)  # most parts are far from the whole object
-        gap = np.linalg.norm(np.maximum(np.maximum(lo - centre, centre - hi), 0.0), axis=1)
-        near = np.flatnonzero(gap <= self.grid_radius)
-        if not len(near):
+        inv = np.linalg.inv(object_pose)
+        found = self.tree.query_ball_point(centre @ inv[:3, :3].T + inv[:3, 3], self.grid_radius)
+        sizes = np.array([len(f) for f in found], dtype=np.int64)
+        if not sizes.sum():
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        d2 = np.sum((y[None, :, :] - centre[near, None, :]) ** 2, axis=2)  # (G', K0)
-        g, p = np.nonzero(d2 <= self.grid_radius[near, None] ** 2)
-        return p, near[g]
+        points = np.concatenate([np.asarray(f, dtype=np.int64) for f in found])
+        grids = np.repeat(np.arange(len(found), dtype=np.int64), sizes)
+        # the tree hands each sphere's points in no set order: sort, so every run sums alike
+        order = np.lexsort((points, grids))
+        return points[order], grids[order]
 
     def _local(self, pose, y: np.ndarray, grid: np.ndarray) -> np.ndarray:
         world = pose.world[self.part_joint[grid]]
@@ -287,9 +293,8 @@ class ObjectInHand:
     def _below(self, pose, object_pose: np.ndarray, level: float):
         """(points (K,), grids (K,), signed distances (K,) m) of the items that may read below
         ``level`` m at pose; every other item reads ``level`` or more."""
-        y = self._world(object_pose)
-        p, g = self._candidates(pose, y)
-        local = self._local(pose, y[p], g)
+        p, g = self._candidates(pose, object_pose)
+        local = self._local(pose, self._world(object_pose, p), g)
         near = self.grids.maybe_below(local, level, g)
         d, _ = self.grids.query(local[near], g[near])
         return p[near], g[near], d
@@ -304,7 +309,7 @@ class ObjectInHand:
     def _sdf(self, pose, object_pose: np.ndarray):
         """At the focused items: (distances below each item's level (K,) m, world gradients
         (K, 3), world points (K, 3), the joints of the grids' frames (K,))."""
-        y = self._world(object_pose)[self.item_point]
+        y = self._world(object_pose, self.item_point)
         world = pose.world[self.part_joint[self.item_grid]]
         local = np.einsum("kba,kb->ka", world[:, :3, :3], y - world[:, :3, 3])
         d, g = self.grids.query(local, self.item_grid)
