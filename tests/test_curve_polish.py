@@ -73,3 +73,28 @@ def test_polish_never_scores_worse_stays_in_limits_and_ignores_the_worker_count(
         np.testing.assert_array_equal(c.knots, before.knots)  # only the coefficients move
     for a, b in zip(polished, out[2][0]):
         np.testing.assert_array_equal(a.coeffs, b.coeffs)
+
+
+def test_polish_stops_at_the_first_step_that_gains_less_than_the_tolerance(solved_demo):
+    """With a tolerance the polish is the tolerance-free run cut after its first kept step that
+    lowered the summed objective by less than that share: same steps, same values, then a stop
+    reported as converged."""
+    problem, _, q = solved_demo
+    rig = problem.rig
+    curves, times = _curves(problem, q)
+    with Executor(workers=1).frame_runner(problem) as runner:
+        _, free = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6)
+        kept, current = [], free.objective_before
+        for value in free.history:  # the trials, in order: a kept step is one that scored lower
+            if value < current:
+                kept.append(value)
+                current = value
+        assert len(kept) >= 3 and not free.converged
+        gains = -np.diff(np.r_[free.objective_before, kept]) / np.r_[free.objective_before, kept][:-1]
+        tolerance = float(np.median(gains))
+        stop = int(np.flatnonzero(gains < tolerance)[0])  # the first kept step gaining less
+        _, cut = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, tolerance=tolerance)
+        assert cut.converged and cut.accepted == stop + 1
+        assert cut.objective_after == kept[stop]
+        _, one = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, tolerance=1.0)
+        assert one.converged and one.accepted == 1 and one.objective_after == kept[0]

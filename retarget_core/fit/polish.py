@@ -29,6 +29,7 @@ class PolishReport:
 
     iterations: int = 0
     accepted: int = 0
+    converged: bool = False  # stopped on the tolerance (a kept step gained too little)
     objective_before: float = float("nan")
     objective_after: float = float("nan")
     seconds: float = 0.0
@@ -37,7 +38,7 @@ class PolishReport:
     def to_dict(self) -> dict:
         # no seconds here: this goes in result.json's counts, which any executor gives alike
         # (the time is in its timings, "curve polish")
-        return {"iterations": self.iterations, "accepted": self.accepted,
+        return {"iterations": self.iterations, "accepted": self.accepted, "converged": self.converged,
                 "objective_before": self.objective_before, "objective_after": self.objective_after}
 
 
@@ -79,10 +80,13 @@ class CoefficientLayout:
 
 
 def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-                  *, iterations: int = 4, coupling=None) -> tuple[list[BSplineCurve], PolishReport]:
+                  *, iterations: int = 4, tolerance: float = 0.0,
+                  coupling=None) -> tuple[list[BSplineCurve], PolishReport]:
     """``curves`` (one per DOF) with coefficients polished on the frames' objective at
     ``times`` (T,) (see the module docstring); ``runner`` a FrameRunner of the run's problem.
-    ``lower``, ``upper`` (D,) the DOF limits. ``coupling``: the rig's
+    ``lower``, ``upper`` (D,) the DOF limits. At most ``iterations`` steps; it stops earlier
+    when a kept step lowered the summed objective by less than ``tolerance`` times its value
+    before the step (0: every iteration runs while steps are kept). ``coupling``: the rig's
     :class:`~retarget_core.rig.coupling.DofCoupling`, kept exactly: the frames' systems are
     carried to the free DOFs and each follower's curve is its leader's, mapped
     (:func:`~retarget_core.fit.splines.coupled_curves`)."""
@@ -161,12 +165,16 @@ def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: 
             value = total(trial)
             report.history.append(value)
             if np.isfinite(value) and value < current:
+                gain = (current - value) / current if current > 0 else 0.0
                 coeffs, current, improved = trial, value, True
                 mu = max(mu / 3.0, 1e-9)
                 report.accepted += 1
                 break
             mu *= 4.0
         if not improved:
+            break
+        if gain < tolerance:
+            report.converged = True
             break
         systems = frame_systems(coeffs)
     runner.executor.report("curve polish", int(iterations), int(iterations))
