@@ -238,6 +238,15 @@ def object_sample_points(vertices: np.ndarray, spacing: float = OBJECT_POINT_SPA
     return np.sort(first)
 
 
+def squared_hinge(d: np.ndarray, gw: np.ndarray, weight: float):
+    """lambda * sum (mm * max(0, -d))^2 over signed distances d (K,) m with world gradients
+    gw (K, 3): (value, ids of the points inside (H,), their cotangents (H, 3)), the form every
+    collision term shares."""
+    pen = np.maximum(-d, 0.0) * MM
+    hit = np.flatnonzero(pen > 0)
+    return weight * float(pen @ pen), hit, (-2.0 * weight * MM) * pen[hit, None] * gw[hit]
+
+
 class ObjectInHand:
     """The object-into-hand half of G_P for one rig and object: object sample points y
     (:func:`object_sample_points`, fixed in the object's frame) against the hand parts' grids
@@ -349,14 +358,11 @@ class ObjectInHand:
         if not len(self.item_point):
             return 0.0, None
         d, gw, y, joint = self._sdf(pose, object_pose)
-        pen = np.maximum(-d, 0.0) * MM
-        hit = pen > 0
-        if not hit.any():
+        value, hit, c = squared_hinge(d, gw, weight)
+        if not len(hit):
             return 0.0, None
-        value = weight * float(pen @ pen)
         if not want_grad:
             return value, None
-        c = (-2.0 * weight * MM) * pen[hit, None] * gw[hit]
         return value, -self.kin.rigid_points_vjp(pose, joint[hit], y[hit], c)
 
     def residuals(self, pose, object_pose: np.ndarray, weight: float, jacobian: bool):
@@ -502,14 +508,11 @@ class SelfCollision:
             return 0.0, None
         x_pts = self.kin.points(pose, self.binding)
         d, gw, x, joint = self._sdf(pose, x_pts[self.item_local], self.focused)
-        pen = np.maximum(-d, 0.0) * MM
-        hit = pen > 0
-        if not hit.any():
+        value, hit, c = squared_hinge(d, gw, weight)
+        if not len(hit):
             return 0.0, None
-        value = weight * float(pen @ pen)
         if not want_grad:
             return value, None
-        c = (-2.0 * weight * MM) * pen[hit, None] * gw[hit]
         cot = np.zeros_like(x_pts)
         np.add.at(cot, self.item_local[hit], c)
         grad = self.kin.points_vjp(pose, self.binding, cot)
