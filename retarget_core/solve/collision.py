@@ -146,7 +146,7 @@ class ObjectCollision:
         self.all = kin.bind(SurfacePoints.from_vertices(self.vertices, surface.faces))
         self.focused = np.arange(len(self.vertices))
         self.binding = self.all
-        self.level = None  # (K,) m per focused point, or None: the depth that costs nothing
+        self.level = None  # (K,) per focused point: 0, or -inf where it costs nothing (keep_out); None: all 0
 
     def _sdf(self, points: np.ndarray, object_pose: np.ndarray):
         inv = np.linalg.inv(object_pose)
@@ -171,18 +171,24 @@ class ObjectCollision:
         self.binding = self.all.subset(self.focused) if len(self.focused) else None
         self.level = None
 
-    def hold_depth(self, pose, object_pose: np.ndarray) -> None:
-        """From now until the next :meth:`focus`, a focused point costs only where it is deeper
-        in the object than at ``pose`` (its level is min(0, its signed distance there)): a pose
-        that is already inside costs nothing, but no step may push a point further in."""
+    def keep_out(self, pose, object_pose: np.ndarray) -> None:
+        """From now until the next :meth:`focus`, only the focused points outside the object at
+        ``pose`` cost (as before: where they go in); those inside there cost nothing wherever
+        they go (their level is -inf)."""
         if self.binding is not None:
             d, _ = self._sdf(self.kin.points(pose, self.binding), object_pose)
-            self.level = np.minimum(d, 0.0)
+            self.level = np.where(d < 0, -np.inf, 0.0)
 
     def _depth(self, pose, object_pose):
-        """(signed distances below each focused point's level (K,) m, world gradients (K, 3))."""
+        """(signed distances above each focused point's level (K,) m, world gradients (K, 3))."""
         d, g = self._sdf(self.kin.points(pose, self.binding), object_pose)
         return (d if self.level is None else d - self.level), g
+
+    def deepest(self, pose, object_pose: np.ndarray) -> float:
+        """How deep the deepest focused point is in the object at pose, m (0: none inside)."""
+        if self.binding is None:
+            return 0.0
+        return max(0.0, float(-self._depth(pose, object_pose)[0].min()))
 
     def missed(self, pose, object_pose: np.ndarray) -> bool:
         """True when a sample point left out by :meth:`focus` is inside the object at pose."""
@@ -268,7 +274,7 @@ class ObjectInHand:
         self.grid_centre, self.grid_radius = grid_spheres(self.grids)
         self.item_point = self.item_grid = np.zeros(0, np.int64)
         self.focused_all = True  # until the first focus, which the first evaluation then makes
-        self.level = None  # (K,) m per focused item, or None: the depth that costs nothing
+        self.level = None  # (K,) per focused item: 0, or -inf where it costs nothing (keep_out); None: all 0
 
     @property
     def n_points(self) -> int:
@@ -316,7 +322,7 @@ class ObjectInHand:
         self.level = None
 
     def _sdf(self, pose, object_pose: np.ndarray):
-        """At the focused items: (distances below each item's level (K,) m, world gradients
+        """At the focused items: (distances above each item's level (K,) m, world gradients
         (K, 3), world points (K, 3), the joints of the grids' frames (K,))."""
         y = self._world(object_pose, self.item_point)
         world = pose.world[self.part_joint[self.item_grid]]
@@ -325,14 +331,22 @@ class ObjectInHand:
         gw = np.einsum("kab,kb->ka", world[:, :3, :3], g)
         return (d if self.level is None else d - self.level), gw, y, self.part_joint[self.item_grid]
 
-    def hold_depth(self, pose, object_pose: np.ndarray) -> None:
-        """As :meth:`ObjectCollision.hold_depth`: until the next :meth:`focus`, an item costs
-        only where its point is deeper in the part than at ``pose``."""
+    def keep_out(self, pose, object_pose: np.ndarray) -> None:
+        """As :meth:`ObjectCollision.keep_out`: until the next :meth:`focus`, only the items
+        whose point is outside its part at ``pose`` cost."""
         if self.focused_all:
             self.focus(pose, object_pose)
         self.level = None
         if len(self.item_point):
-            self.level = np.minimum(self._sdf(pose, object_pose)[0], 0.0)
+            self.level = np.where(self._sdf(pose, object_pose)[0] < 0, -np.inf, 0.0)
+
+    def deepest(self, pose, object_pose: np.ndarray) -> float:
+        """How deep the deepest focused item's point is in its part at pose, m (0: none)."""
+        if self.focused_all:
+            self.focus(pose, object_pose)
+        if not len(self.item_point):
+            return 0.0
+        return max(0.0, float(-self._sdf(pose, object_pose)[0].min()))
 
     def missed(self, pose, object_pose: np.ndarray) -> bool:
         """True when an item left out by :meth:`focus` reads inside its part at pose."""

@@ -484,20 +484,21 @@ class RetargetConfig:
         (``handretarget grid ... --clip bottle_pick_place --method contacts``) kept every
         contact median within 0.1 mm (LEAP 4.69 -> 4.65 mm, alien 1.71 -> 1.62, witch 1.94 ->
         1.98), LEAP's self intersection rose from 8.2 to 10.7 %, robot4's fell from 4.6 to 4.0 %;
-        (9) the collision terms are built but off (``weights.lambda_p``, ``weights.lambda_sc``).
-        On (tried at stop 34) they broke the mirror test's vertex bound (left hand against the
-        mirrored right; at stop 36, with exact distance grids and an exactly mirror-symmetric
-        bottle, still 1.06 mm mean at worst against 1 mm: a middle finger pinned at its
-        abduction limits flips to the other side in some frames of one hand) and tripled the
-        LEAP two-branch test; with the warm start of stop 36 (held object depth, self
-        collision whole: no palm 12 mm into a hammer, no fingers through each other) they cost
-        2.3-2.6x the solving stages of the bench (``handretarget bench --collision``; the goal
-        is 1.5x; measured before the warm start's whole-term steps were added). With lambda_p = 10 and lambda_sc = 10 (every 4th vertex for the penetration
-        term, 32 sample vertices per hand part for self collision) robot4 on
-        bottle_pick_place (120 frames, exact measures over the contact frames) went from 31.4 mm
-        p95 penetration and 1.65 % median self intersection to 1.74 mm and 0.0006 %, contact
-        error 3.50 -> 3.94 mm; prosthetic_1dof 1.60 -> 0.90 mm p95 (contact 2.13 -> 2.20),
-        human_alt 0.67 -> 0.58 (contact 1.61 -> 1.62); the README's grid table has every hand.
+        (9) the collision terms are built but off (``weights.lambda_p``, ``weights.lambda_sc``;
+        :data:`COLLISION_WEIGHTS` turns them on: every 4th vertex for the hand-into-object half,
+        the object's points every 2 mm for the other, 32 sample vertices per hand part for self
+        collision). On, robot4 on bottle_pick_place (120 frames, exact measures over the
+        contact frames) goes from 31.4 mm p95 penetration and 1.65 % median self intersection
+        to 1.74 mm and 0.0006 % (contact error 3.50 -> 3.94 mm); the README's grid table has
+        every hand. What keeps them off is the mirror test (tests/test_grab_both_hands.py: the
+        left hand against the mirrored right within 1 mm per frame and 2 mm per vertex): the
+        frame solve has two minima at some frames of that clip (frame 100: the middle finger's
+        distal joints 42 deg apart between the two hands, with the terms on and off alike, from
+        inputs that agree to rounding), and whether filtering, refinement and the curve polish
+        bring the two hands back within the bounds changes with any change to the objective
+        (terms off: 1.47 mm at worst; on: 2.3-4.4 mm, per-frame mean 0.4-1.6 mm, as the warm
+        start changed). Their cost (``handretarget bench --collision``, the goal is 1.5x the
+        solving stages) is in the README's "Issue 20's goals".
 
     Top-level key ``method``: ``"contacts"`` (the paper) or a contact-free baseline
     (:data:`METHODS`); the settings a baseline does not use in its finger passes are listed in

@@ -12,8 +12,11 @@ from .objective import FrameObjective
 
 ROOT_TRANSLATION_WINDOW = 0.05  # metres around the seed
 ROOT_ROTATION_WINDOW = 0.6  # radians around the seed
-#: Gauss-Newton steps on the whole hand-object term after the held warm start (see solve_frame).
+#: Gauss-Newton steps on the whole hand-object term after a warm start (see :func:`warm_start`).
 WHOLE_OBJECT_ITERATIONS = 5
+#: A warm start that leaves the hand this deep in the object (m) is tried again with the term
+#: keeping out what was out (:func:`warm_start`).
+RETRY_DEPTH = 0.001
 
 #: What a frame solve may fail with numerically: nlopt's generic failure (RuntimeError) and
 #: forced stop, floating-point and linear-algebra errors. Only these make a "failed frame";
@@ -46,10 +49,8 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
                 algorithm: str = "LD_MMA", warm_start_iterations: int = 0,
                 coupling: DofCoupling | None = None) -> FrameSolution:
     """Minimise the objective over the ``active`` DOFs (bool (D,)) within [lower, upper], from
-    ``seed`` (D,), optionally after ``warm_start_iterations`` bounded Gauss-Newton steps
-    (:func:`gauss_newton_warm_start`), where a point costs only by going deeper into the object
-    than at the seed (:meth:`FrameObjective.hold_object_depth`), then, when the hand and the
-    object then overlap, :data:`WHOLE_OBJECT_ITERATIONS` more on the whole term.
+    ``seed`` (D,), optionally after a warm start of up to ``warm_start_iterations`` bounded
+    Gauss-Newton steps (:func:`warm_start`).
     ``coupling``: the rig's DOF couplings, kept exactly (the
     solver moves the free DOFs; followers are computed from their leaders). ``gradient =
     "forward"`` replaces the analytic gradient by forward differences (one extra evaluation
@@ -62,31 +63,7 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
         return FrameSolution(base, np.nan, 0, -1000, "the seed is not finite (NaN in an earlier pass's result?)")
     objective.set_seed(base)
     if warm_start_iterations > 0:
-        # the warm start closes the hand from the seed (the root pass's pose, fingers at rest)
-        # onto the contacts and markers. The hand-object term counts there only what pushes a
-        # point deeper than it sat at the seed; the whole term joins where MMA starts:
-        # - in full, the rows of whatever sat inside the object at the open-handed seed (a
-        #   different few points every frame) fought the contacts: the warm-started fingers
-        #   jittered from frame to frame (second-difference RMS 5.9 deg against 2.0 without the
-        #   terms, 1000-frame bench clip) and MMA took 30 % more evaluations to settle them;
-        # - left out (stops 34-35), the contacts and markers pulled the hand through the object,
-        #   deeper than MMA's local steps undo (robot4 on hammer_power: the palm 12 mm into the
-        #   hammer from frame 108 on, from seeds 3 mm in);
-        # self collision stays in whole (at the seed the fingers are at rest): without it,
-        # contacts that pull two fingers together closed them through each other (robot4 on
-        # apple_rotate: self intersection median 6.4 % of the hand's volume, 0.11 % with it)
-        objective.hold_object_depth(base)
-        base = gauss_newton_warm_start(objective, base, lower, upper, active, warm_start_iterations, coupling)
-        # the warm start moves the fingers the most (from rest to the grasp): the points near the
-        # table, the object or another part are picked again where MMA starts
-        objective.focus_samples(base)
-        if objective.object_penetration(base) > 0:
-            # closed on its contacts, the hand's rows inside the object are real penetrations
-            # (not the open hand's): a few steps on the whole term push out what the seed had in
-            # (LEAP on hammer_power: p95 penetration 16.5 -> 3.6 mm, contact 8.2 -> 4.8 mm).
-            # Nothing in: MMA starts from the held warm start
-            base = gauss_newton_warm_start(objective, base, lower, upper, active, WHOLE_OBJECT_ITERATIONS,
-                                           coupling)
+        base = warm_start(objective, base, lower, upper, active, warm_start_iterations, coupling)
     n = int(active.sum())
     best = {"value": np.inf, "q": base.copy()}
     start_evals = objective.evaluations
@@ -155,6 +132,56 @@ def solve_frame(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, 
             raise
         return FrameSolution(base, np.nan, objective.evaluations - start_evals, -1000, f"{type(err).__name__}: {err}")
     # anything else (TypeError, IndexError, ...) is a programming error: it fails the run
+
+
+def warm_start(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+               active: np.ndarray, iterations: int, coupling: DofCoupling) -> np.ndarray:
+    """Close the hand from ``seed`` (D,) (the root pass's pose, fingers at rest) onto the
+    contacts and markers: :func:`gauss_newton_warm_start` without the hand-object term, then,
+    where the hand and the object overlap, :data:`WHOLE_OBJECT_ITERATIONS` steps with it. When
+    that leaves a point more than :data:`RETRY_DEPTH` in, a second warm start from the seed
+    where only what was outside the object at the seed costs (:meth:`FrameObjective.keep_object_out`),
+    the same steps after; the pose with the lower objective is kept (q (D,)). The objective is
+    left focused at the returned pose.
+
+    Why both (measured with lambda_p = 10; "jumps": :func:`~retarget_core.refine.branches.branch_jumps`
+    of the full pass, 300 frames of the bench clip onto human_alt, 120 of hammer_power onto robot4):
+    - the whole term from the start (stops 34-35): the rows of whatever sat inside at the
+      open-handed seed fought the contacts, and the fingers jittered from frame to frame;
+    - each point held at its depth at the seed (stops 36-38): the closing fingers were held in
+      the object, 26 jumps on the bench clip (the coherence pass then traced 1137 frames, 43 s
+      of an 83 s run);
+    - without the term alone: none there, where the open fingers lie through the object at the
+      seed, but on the hammer the fingers close through its thin handle (15 jumps, delivered
+      p95 penetration 15.1 mm);
+    - keeping out what was out alone: the hammer meets every goal (p95 1.06 mm, contact
+      3.70 mm), the bench clip has 18 jumps;
+    - both, the lower kept: no jumps on the bench clip, the hammer meets every goal (p95
+      1.36 mm, contact 3.71 mm).
+    Self collision stays in whole (at the seed the fingers are at rest): without it, contacts
+    that pull two fingers together closed them through each other (robot4 on apple_rotate:
+    self intersection median 6.4 % of the hand's volume, 0.11 % with it)."""
+
+    def then_whole(q):
+        # the points near the table, the object or another part, picked again where the warm
+        # start ended (it moves the fingers the most); a few steps push out what is in
+        objective.focus_samples(q)
+        if objective.object_penetration(q) > 0:
+            q = gauss_newton_warm_start(objective, q, lower, upper, active, WHOLE_OBJECT_ITERATIONS, coupling)
+        return q
+
+    with objective.hand_object_off():
+        through = gauss_newton_warm_start(objective, seed, lower, upper, active, iterations, coupling)
+    through = then_whole(through)
+    if objective.object_depth(through) <= RETRY_DEPTH:
+        return through
+    objective.focus_samples(seed)
+    objective.keep_object_out(seed)
+    around = then_whole(gauss_newton_warm_start(objective, seed, lower, upper, active, iterations, coupling))
+    if objective.whole_value(around) < objective.whole_value(through):
+        return around  # focused there by then_whole
+    objective.focus_samples(through)
+    return through
 
 
 def gauss_newton_warm_start(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, upper: np.ndarray,

@@ -127,14 +127,16 @@ class FrameObjective:
         self.gauge_direction = vt[-1]
         self.gauge_weight = self.w.lambda_r * closeness ** 2
 
-    def focus_samples(self, q: np.ndarray, margin: float = TABLE_MARGIN) -> None:
+    def focus_samples(self, q: np.ndarray, margin: float = TABLE_MARGIN, hand_object: bool = True) -> None:
         """Let the table term see only the sample points within ``margin`` (m) of the table at
         pose q (D,), and the collision terms only the points near the object or near another
         part: most of a hand is far from each, and skinning thousands of points per evaluation
         for nothing dominates the cost. Exact as long as the far points stay out;
-        :meth:`unseen_collision` checks that at the solution."""
+        :meth:`unseen_collision` checks that at the solution. ``hand_object`` False leaves the
+        hand-object term's sets as they are (a warm start that runs without it refocuses after)."""
         pose = self.kin.pose(q)
-        if self.object_collision is not None and self.frame is not None and self.frame.object_pose is not None:
+        if (hand_object and self.object_collision is not None and self.frame is not None
+                and self.frame.object_pose is not None):
             self.object_collision.focus(pose, self.frame.object_pose)
             self.object_in_hand.focus(pose, self.frame.object_pose)
         if self.self_collision is not None:
@@ -162,15 +164,24 @@ class FrameObjective:
             return inside_all > 0
         return inside_all > int((box_signed_distance(self.kin.points(pose, self.sample_binding), *self.table) < 0).sum())
 
-    def hold_object_depth(self, q: np.ndarray) -> None:
-        """Until the next :meth:`focus_samples`, the hand-object term costs only what pushes a
-        point deeper into the object than at pose q (D,) (:meth:`ObjectCollision.hold_depth`):
-        the Gauss-Newton warm start's form of it (see
-        :func:`~retarget_core.solve.frame_solver.solve_frame`)."""
+    def keep_object_out(self, q: np.ndarray) -> None:
+        """Until the next :meth:`focus_samples`, the hand-object term costs only for the points
+        (and object-point items) outside the object (the part) at pose q (D,): what is inside
+        there moves freely, nothing else may go in (:meth:`ObjectCollision.keep_out`). The
+        second warm start's form of the term (see
+        :func:`~retarget_core.solve.frame_solver.warm_start`)."""
         if self.object_collision is not None and self.frame is not None and self.frame.object_pose is not None:
             pose = self.kin.pose(q)
-            self.object_collision.hold_depth(pose, self.frame.object_pose)
-            self.object_in_hand.hold_depth(pose, self.frame.object_pose)
+            self.object_collision.keep_out(pose, self.frame.object_pose)
+            self.object_in_hand.keep_out(pose, self.frame.object_pose)
+
+    def object_depth(self, q: np.ndarray) -> float:
+        """The deepest focused point of either half of G_P at pose q (D,), m (0: none inside)."""
+        if self.object_collision is None or self.frame is None or self.frame.object_pose is None:
+            return 0.0
+        pose = self.kin.pose(q)
+        return max(self.object_collision.deepest(pose, self.frame.object_pose),
+                   self.object_in_hand.deepest(pose, self.frame.object_pose))
 
     def object_penetration(self, q: np.ndarray) -> float:
         """lambda_p * G_P (both halves) at pose q (D,) over the focused points: 0 when no point
@@ -180,6 +191,16 @@ class FrameObjective:
         pose = self.kin.pose(q)
         return (self.object_collision.value_and_cot(pose, self.frame.object_pose, self.w.lambda_p)[0]
                 + self.object_in_hand.value_and_grad(pose, self.frame.object_pose, self.w.lambda_p, False)[0])
+
+    @contextmanager
+    def hand_object_off(self):
+        """Within the block the objective leaves out the hand-object term (both halves of G_P)."""
+        held = self.object_collision, self.object_in_hand
+        self.object_collision = self.object_in_hand = None
+        try:
+            yield self
+        finally:
+            self.object_collision, self.object_in_hand = held
 
     @contextmanager
     def collision_off(self):

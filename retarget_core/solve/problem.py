@@ -172,10 +172,11 @@ def solve_frames(state: dict, frames, seeds, stage: str, keyed: bool = False) ->
     for f, seed in zip(frames, seeds):
         objective.set_frame(problem.frame_data(int(f)))
         objective.reference = np.asarray(seed, dtype=np.float64) if keyed else rest
-        objective.focus_samples(seed)
+        warm = 0 if root_only else cfg.warm_start_iterations
+        # the warm start runs without the hand-object term and solve_frame refocuses it after
+        objective.focus_samples(seed, hand_object=warm == 0)
         # the root pass starts from the previous frame's root: MMA alone is enough there
-        sol = solve_frame(objective, seed, lower, upper, active,
-                          warm_start_iterations=0 if root_only else cfg.warm_start_iterations, **settings)
+        sol = solve_frame(objective, seed, lower, upper, active, warm_start_iterations=warm, **settings)
         evaluations = sol.evaluations
         if sol.ok and objective.unseen_collision(sol.q):
             # a point that was far from the table, object or another part at the seed ended inside: polish with it
