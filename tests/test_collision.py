@@ -173,6 +173,37 @@ def test_object_term_of_a_hand_pushed_into_a_slab(hand):
     assert cot[:, 2].max() <= 0 and cot[:, 2].min() < 0  # pushing a point down costs more
 
 
+def test_keep_out_frees_what_was_in_and_keeps_the_rest_out(hand):
+    """After keep_out at a pose 4 mm into a slab, the points inside there cost nothing wherever
+    they go; moved 1 mm further down, only the points that were outside and are now in cost,
+    each its own depth; rows and value agree; focus forgets it. The deepest point reads the
+    same as the slab's geometry."""
+    rig, kin = hand
+    q = rig.rest_pose
+    v = kin.skin(q)
+    box, top, slab = _slab_under(v)
+    term = ObjectCollision(kin, box.vertices, box.faces, stride=1)
+    pose = kin.pose(q)
+    term.focus(pose, slab)
+    heights = v[term.vertices[term.focused], 2]
+    assert term.deepest(pose, slab) == pytest.approx(top - heights.min(), abs=2e-4)  # grid vs exact, m
+    term.keep_out(pose, slab)
+    assert term.value_and_cot(pose, slab, 2.0)[0] == 0.0 and len(term.residuals(pose, slab, 2.0, False)[0]) == 0
+    raised = slab.copy()
+    raised[2, 3] += 0.001  # the slab 1 mm up: every point 1 mm deeper
+    value, _ = term.value_and_cot(pose, raised, 2.0)
+    was_in = heights < top
+    newly = np.clip(top + 0.001 - heights[~was_in], 0.0, None) * MM  # mm, the points that were out
+    newly = newly[newly > 0]
+    assert was_in.sum() > 10 and len(newly) > 0  # both kinds are there
+    # grid reading against the slab's exact depth: within 0.05 mm per point
+    assert np.sqrt(value / 2.0) == pytest.approx(np.sqrt(float(newly @ newly)), abs=0.05 * np.sqrt(len(newly)))
+    r, _ = term.residuals(pose, raised, 2.0, False)
+    assert len(r) == len(newly) and r @ r == pytest.approx(value, rel=1e-10)
+    term.focus(pose, slab)
+    assert term.level is None and term.value_and_cot(pose, slab, 2.0)[0] > 0
+
+
 def _exact_part_depths(kin, parts, q, points):
     """(points (K,), parts (K,), depth m (K,)) of every (world point of ``points`` (N, 3), part)
     with the point inside the part's closed mesh posed rigidly with its joint from rest to q
