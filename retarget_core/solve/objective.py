@@ -205,12 +205,12 @@ class FrameObjective:
     @contextmanager
     def collision_off(self):
         """Within the block the objective leaves out the collision terms (G_P, G_SC)."""
-        held = self.object_collision, self.object_in_hand, self.self_collision
-        self.object_collision = self.object_in_hand = self.self_collision = None
-        try:
-            yield self
-        finally:
-            self.object_collision, self.object_in_hand, self.self_collision = held
+        with self.hand_object_off():
+            held, self.self_collision = self.self_collision, None
+            try:
+                yield self
+            finally:
+                self.self_collision = held
 
     # ---- the terms -----------------------------------------------------------------------------
     def whole_value(self, q: np.ndarray) -> float:
