@@ -499,8 +499,9 @@ class RetargetConfig:
         (terms on: 2.3-4.4 mm, per-frame mean 0.4-1.6 mm, as the warm start changed). Off, it
         depends on the machine: at 21a7f49 the same run gives 0.99 mm with OpenBLAS's SkylakeX
         kernels and 2.60 mm with its Haswell kernels (``OPENBLAS_CORETYPE``, same AMD EPYC
-        host; the test fails there); and their cost: 3.16x the solving stages at stop 39 (``handretarget bench
-        --collision``, the goal is 1.5x; the README's "What they cost" has where it goes).
+        host; the test fails there); and their cost: 3.16x the solving stages at stop 39
+        (``handretarget bench --collision``, the goal is 1.5x; the README's "What they cost" has
+        where it goes).
 
     Top-level key ``method``: ``"contacts"`` (the paper) or a contact-free baseline
     (:data:`METHODS`); the settings a baseline does not use in its finger passes are listed in
