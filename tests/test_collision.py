@@ -287,6 +287,12 @@ def test_object_in_hand_gradient_and_jacobian_match_finite_differences(hand, rng
     fd = central(value, q)
     assert np.abs(grad - fd).max() <= 1e-4 * np.abs(fd).max()
     assert_rows_match(*term.residuals(pose, place, 1.0, True), v0, fd)
+    # kept out: the items inside at this pose cost nothing (they are all that cost here); focus forgets it
+    term.keep_out(pose, place)
+    assert term.value_and_grad(pose, place, 1.0, False)[0] == 0.0 and term.deepest(pose, place) == 0.0
+    term.focus(pose, place)
+    assert term.level is None and term.value_and_grad(pose, place, 1.0, False)[0] == pytest.approx(v0)
+    assert term.deepest(pose, place) > 0.0
 
 
 def test_object_in_hand_focus_keeps_exactly_the_near_items(hand, rng):
