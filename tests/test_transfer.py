@@ -248,3 +248,41 @@ def test_point_outside_the_mesh_is_named(source):
     data["axial_curves"][1]["target"]["lambda_a"] = 0
     with pytest.raises(InputError, match="lambda_a"):
         annotations_from_dict(data)
+
+
+def test_face_winding_does_not_change_the_geometry_tolerances(source):
+    """The chart-trust tolerance (``edge_length``) is a property of the surface, not of where
+    each face's corner list starts: the same mesh with its corners rolled, and its mirror image
+    (faces (a, c, b)), read the same length."""
+    v, f = source.surface.vertices, source.surface.faces
+    plain = SurfaceGeometry(v, f)
+    rolled = SurfaceGeometry(v, f[:, [1, 2, 0]])
+    mirrored = SurfaceGeometry(v * np.array([-1.0, 1.0, 1.0]), f[:, [0, 2, 1]])
+    assert rolled.edge_length == pytest.approx(plain.edge_length, rel=1e-12)
+    assert mirrored.edge_length == pytest.approx(plain.edge_length, rel=1e-12)
+    tri = v[f]
+    every_edge = np.linalg.norm(tri[:, [1, 2, 0]] - tri, axis=2)
+    assert plain.edge_length == pytest.approx(np.median(every_edge), rel=1e-12)
+
+
+def test_mirrored_hands_carry_mirrored_contacts_to_mirrored_places(source, clip_pairs):
+    """A left pair (both hands mirrored, annotations mirrored) is the right pair's mirror image:
+    every contact picks the same chart and lands at the mirror of the right one's target point
+    (the left and right results of a two-handed clip depend on it)."""
+    from retarget_core.rig.mirror import mirror_annotations, mirror_rig
+
+    _, pairs = clip_pairs
+    target = demo_hand("human_alt", 0.008)
+    annotations = propose_annotations(source, target)
+    right = transfer_clip(pairs, source, target, annotations)
+    left_source, left_target = mirror_rig(source), mirror_rig(target)
+    left_pairs = type(pairs)(**{**vars(pairs), "hand_barycentric": pairs.hand_barycentric[:, [0, 2, 1]]})
+    left = transfer_clip(left_pairs, left_source, left_target, mirror_annotations(annotations))
+    np.testing.assert_array_equal(left.contacts.landmark, right.contacts.landmark)
+    np.testing.assert_array_equal(left.contacts.dropped, right.contacts.dropped)
+    kept = ~right.contacts.dropped
+    assert kept.sum() > 500
+    at_right = right.contacts.target_points().positions(target.surface.vertices, target.surface.faces)
+    at_left = left.contacts.target_points().positions(left_target.surface.vertices, left_target.surface.faces)
+    gap = np.linalg.norm(at_left[kept] - at_right[kept] * np.array([-1.0, 1.0, 1.0]), axis=1)
+    assert gap.max() < 1e-6  # metres: the same chart gives the same point, up to float rounding

@@ -49,7 +49,7 @@ TRACE_TOLERANCE = 0.001
 
 #: Version of the on-disk atlas (part of the cache key and stored in the file): bump it whenever
 #: the arrays of :meth:`Atlas.to_arrays` or the way an atlas is built change.
-ATLAS_CACHE_VERSION = 1
+ATLAS_CACHE_VERSION = 2  # 2: SurfaceGeometry.edge_length over all three edges of each face
 
 log = logging.getLogger(__name__)
 

@@ -61,8 +61,9 @@ class SurfaceGeometry:
         self._aabb.init(self.vertices, self.faces)
         self._component = None
         self._heat = None
-        tri = self.vertices[self.faces]
-        self.edge_length = float(np.median(np.linalg.norm(tri[:, 0] - tri[:, 1], axis=1)))
+        # the median over every face's three edges: one edge per face would depend on where each
+        # face's corner list starts, so a mirrored hand (faces (a, c, b)) would read another length
+        self.edge_length = float(np.median(self._edge_lengths))
 
     # ---- points -----------------------------------------------------------------------------
     def positions(self, points: SurfacePoints) -> np.ndarray:
