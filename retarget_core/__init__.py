@@ -16,3 +16,7 @@ Everything is SI: metres, radians, seconds. Nothing in the core prints.
 """
 
 __version__ = "0.1.0"
+
+from .kernels import pin_kernels as _pin_kernels
+
+_pin_kernels()  # before anything loads numpy: one kernel set on every machine (see kernels.py)

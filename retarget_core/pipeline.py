@@ -30,6 +30,7 @@ from .execute import Executor, FrameRunner
 from .fit.polish import polish_curves
 from .fit.splines import coupled_curves, evaluate_curves, fit_trajectory
 from .inputs import RunInputs, frame_range
+from .kernels import kernel_provenance
 from .mesh.geometry import rigid_fit
 from .mesh.surface_points import SurfacePoints
 from .pairing.dense import ContactPairs, pair_contacts
@@ -199,7 +200,8 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
                        "(its mesh is too coarse there for geodesics): they were dropped, not guessed",
                        summary["unmapped_contacts"], len(transferred.contacts.dropped))
     provenance = {"version": __version__, "commit": _commit(), "inputs": inputs.provenance(),
-                  "frames": [first, last], "config": config.to_dict(), "executor": executor.describe()}
+                  "frames": [first, last], "config": config.to_dict(), "executor": executor.describe(),
+                  "kernels": kernel_provenance()}
     if remap.changed:  # annotations carried onto edited meshes: how far their points moved
         provenance["annotation_remap"] = remap.to_dict() | {"lines": remap.lines()}
     return RetargetResult(

@@ -1,5 +1,7 @@
 """Shared fixtures: demo hands at a coarse resolution, built once per test session."""
 
+import retarget_core  # noqa: F401  first, before numpy: it pins the numerical kernels (kernels.py)
+
 import numpy as np
 import pytest
 
