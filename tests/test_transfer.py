@@ -286,3 +286,35 @@ def test_mirrored_hands_carry_mirrored_contacts_to_mirrored_places(source, clip_
     at_left = left.contacts.target_points().positions(left_target.surface.vertices, left_target.surface.faces)
     gap = np.linalg.norm(at_left[kept] - at_right[kept] * np.array([-1.0, 1.0, 1.0]), axis=1)
     assert gap.max() < 1e-6  # metres: the same chart gives the same point, up to float rounding
+
+
+def test_vertex_and_face_order_do_not_change_where_contacts_land(source, clip_pairs):
+    """Another exporter writes the same target hand with its vertices and faces in another order
+    and each face's corners starting elsewhere: the annotations are carried onto it by position,
+    and every contact lands at the same point of the hand."""
+    from dataclasses import replace
+
+    from retarget_core.rig.model import SkinnedMesh
+    from retarget_core.transfer.annotations import remap_to_meshes, with_positions
+
+    _, pairs = clip_pairs
+    target = demo_hand("human_alt", 0.008)
+    annotations = with_positions(propose_annotations(source, target), source, target)
+    s = target.surface
+    rng = np.random.default_rng(3)
+    order = rng.permutation(len(s.vertices))  # new vertex i is old vertex order[i]
+    faces = np.argsort(order)[s.faces]
+    faces = np.stack([np.roll(f, -k) for f, k in zip(faces, rng.integers(0, 3, len(faces)))])
+    faces = faces[rng.permutation(len(faces))]
+    shuffled = replace(target, surface=SkinnedMesh(s.vertices[order], faces, s.joint_indices[order],
+                                                   s.joint_weights[order]))
+    carried, _ = remap_to_meshes(annotations, source, shuffled)
+    before = transfer_clip(pairs, source, target, annotations).contacts
+    after = transfer_clip(pairs, source, shuffled, carried).contacts
+    np.testing.assert_array_equal(after.dropped, before.dropped)
+    np.testing.assert_array_equal(after.landmark, before.landmark)
+    kept = ~before.dropped
+    assert kept.sum() > 500
+    gap = np.linalg.norm(after.target_points().positions(shuffled.surface.vertices, faces)[kept]
+                         - before.target_points().positions(s.vertices, s.faces)[kept], axis=1)
+    assert gap.max() < 1e-9  # metres
