@@ -318,3 +318,80 @@ def test_vertex_and_face_order_do_not_change_where_contacts_land(source, clip_pa
     gap = np.linalg.norm(after.target_points().positions(shuffled.surface.vertices, faces)[kept]
                          - before.target_points().positions(s.vertices, s.faces)[kept], axis=1)
     assert gap.max() < 1e-9  # metres
+
+
+def test_proposed_finger_curves_run_along_the_palmar_midline_on_both_hands():
+    """Within 60 deg of palmar over the first 80 % (the old curves: 73 deg by the index
+    finger's middle). A single knuckle-to-apex geodesic spiralled round the source's curled index finger (to
+    -113 deg at the tip) and each target finger its own way, so pad contacts landed on the side
+    of the fingertip; the curves now run through the skin palmar of each articulation."""
+    from retarget_core.rig.hand_model import hand_model
+
+    src = demo_hand("source_human", resolution=0.005)
+    for name in ("prosthetic_1dof", "witch"):
+        tgt = demo_hand(name, resolution=0.005)
+        annotations = propose_annotations(src, tgt)
+        atlas = Atlas(SurfaceGeometry(src.surface.vertices, src.surface.faces),
+                      SurfaceGeometry(tgt.surface.vertices, tgt.surface.faces), annotations)
+        for ci, c in enumerate(annotations.curves):
+            if c.name in ("thumb", "palm", "knuckles") or c.discard:
+                continue
+            for rig, curve, geometry in ((src, atlas.source_curves[ci], atlas.source),
+                                         (tgt, atlas.target_curves[ci], atlas.target)):
+                finger = hand_model(rig).finger(c.name)
+                n = len(curve.positions)
+                for k in range(int(0.8 * n)):
+                    seg = min(finger.segments, key=lambda g: _distance_to_segment(curve.positions[k], g))
+                    normal = geometry.face_normals[curve.faces[k]]
+                    side = normal - (normal @ seg.direction) * seg.direction
+                    cosine = side @ seg.palmar / np.linalg.norm(side)
+                    assert cosine > np.cos(np.radians(60)), (name, c.name, k, np.degrees(np.arccos(cosine)))
+
+
+def _distance_to_segment(point, segment) -> float:
+    """Distance (m) from point (3,) to the bone segment's line piece start..end."""
+    t = np.clip((point - segment.start) @ segment.direction / segment.length, 0.0, 1.0)
+    return float(np.linalg.norm(point - (segment.start + t * segment.length * segment.direction)))
+
+
+def test_a_target_curve_through_anchors_follows_them(cylinders):
+    """Known answer on cylinders: the source curve along the generator at angle 0 through three
+    points; the target through points at angle 0 then pi/2 (a helix leg, then a straight one).
+    Landmarks correspond one to one, anchors land on their points, and a contact beside the
+    second leg lands beside the target's second leg at the same offset."""
+    (v1, f1), (v2, f2) = cylinders
+    r1, r2 = 0.010, 0.014
+    src_pts = [surface_point(v1, f1, (r1, 0, z)) for z in (0.02, 0.05, 0.08)]
+    a = np.pi / 2
+    through = [surface_point(v2, f2, (r2 * np.cos(a), r2 * np.sin(a), z)) for z in (0.06, 0.11)]
+    annotations = Annotations(
+        MeshSignature("cylinder1", len(v1), len(f1)), MeshSignature("cylinder2", len(v2), len(f2)), (),
+        (AxialCurveAnnotation(name="finger", source_points=tuple(src_pts), target=CurveTarget(
+            start=surface_point(v2, f2, (r2, 0, 0.02)), direction=through[0], lambda_a=1.0,
+            lambda_s=LambdaS.constant(1.0), through=tuple(through))),))
+    atlas = Atlas(SurfaceGeometry(v1, f1), SurfaceGeometry(v2, f2), annotations)
+    s, t = atlas.source_curves[0], atlas.target_curves[0]
+    assert len(s) == len(t)
+    for k, point in zip(s.anchors[1:], through):
+        expected = SurfacePoints(np.array([point.face]), np.array([point.barycentric])).positions(v2, f2)[0]
+        assert np.linalg.norm(t.positions[k] - expected) < 1e-4
+    # a contact 0.2 rad round the source cylinder, 15 mm into the second leg (of 30 mm)
+    contact = closest_surface_points(v1, f1, np.array([[r1 * np.cos(0.2), r1 * np.sin(0.2), 0.065]]))
+    out = SurfacePoints(*(lambda r: (r.face, r.barycentric))(atlas.transfer(contact))).positions(v2, f2)[0]
+    assert abs(np.arctan2(out[1], out[0]) - (a + r1 * 0.2 / r2)) < 0.05
+    assert abs(out[2] - (0.06 + 0.5 * 0.05)) < 0.003
+
+
+def test_through_points_are_checked():
+    p = PointRef(vertex=1)
+    with pytest.raises(InputError, match="begin with the direction point"):
+        CurveTarget(start=p, direction=PointRef(vertex=2), lambda_a=1.0, lambda_s=LambdaS.constant(1.0),
+                    through=(PointRef(vertex=3),))
+    target = CurveTarget(start=p, direction=PointRef(vertex=2), lambda_a=1.0, lambda_s=LambdaS.constant(1.0),
+                         through=(PointRef(vertex=2), PointRef(vertex=3)))
+    with pytest.raises(InputError, match="need source points"):
+        AxialCurveAnnotation(name="f", source_start=p, source_end=PointRef(vertex=4), target=target)
+    with pytest.raises(InputError, match="needs 1 'through' points, not 2"):
+        AxialCurveAnnotation(name="f", source_points=(p, PointRef(vertex=4)), target=target)
+    ok = AxialCurveAnnotation(name="f", source_points=(p, PointRef(vertex=4), PointRef(vertex=5)), target=target)
+    assert ok.to_dict()["target"]["through"] == [{"vertex": 2}, {"vertex": 3}]

@@ -148,10 +148,11 @@ def _positions(points, rig) -> np.ndarray:
     return sp.positions(surf.vertices, surf.faces)
 
 
-def _surface_points(point, rig):
+def _surface_points(point, rig, many: bool = False):
+    """SurfacePoints of one annotation point (or, ``many``, of a list of them) on ``rig``."""
     from ..transfer.annotations import resolve_points
 
-    return resolve_points([point], rig.surface.faces, rig.surface.n_vertices, what="point")
+    return resolve_points(point if many else [point], rig.surface.faces, rig.surface.n_vertices, what="point")
 
 
 @dataclass
@@ -216,8 +217,9 @@ def _curves(annotations, source_rig, target_rig):
         tgt_pts, t_traced = np.vstack([start, toward]), False
         if tg is not None and source_curve is not None:
             try:
+                through = None if t.through is None else _surface_points(list(t.through), target_rig, many=True)
                 rebuilt = reconstruct_curve(tg, source_curve, _surface_points(t.start, target_rig),
-                                            _surface_points(t.direction, target_rig), t.lambda_a)
+                                            _surface_points(t.direction, target_rig), t.lambda_a, through=through)
                 tgt_pts, t_traced = rebuilt.positions, True
             except InputError as err:
                 log.warning("axial curve %r: target curve not traced (%s)", c.name, err)

@@ -110,8 +110,9 @@ def mirror_annotations(annotations, *, axis: str = "x", source_rig: str | None =
                for mk in annotations.markers]
     curves = []
     for c in annotations.curves:
-        tgt = None if c.target is None else CurveTarget(point(c.target.start), point(c.target.direction),
-                                                        c.target.lambda_a, lambda_s(c.target.lambda_s))
+        tgt = None if c.target is None else CurveTarget(
+            point(c.target.start), point(c.target.direction), c.target.lambda_a, lambda_s(c.target.lambda_s),
+            None if c.target.through is None else tuple(point(p) for p in c.target.through))
         curves.append(AxialCurveAnnotation(
             name=c.name,
             source_start=None if c.source_start is None else point(c.source_start),

@@ -421,16 +421,31 @@ class LambdaS:
 class CurveTarget:
     """Where an axial curve lands on the target hand: the axis origin ``start``, a point
     ``direction`` whose geodesic from ``start`` fixes the initial outgoing direction, the
-    length scale ``lambda_a`` (> 0, dimensionless) and the angular scale ``lambda_s``."""
+    length scale ``lambda_a`` (> 0, dimensionless) and the angular scale ``lambda_s``.
+
+    ``through`` (optional, only for a curve given by source points): the target points the
+    curve passes through, one for each source point after the first, so the target curve is
+    anchored on the target's own anatomy leg by leg (each leg keeps its source leg's number of
+    landmarks, evenly spaced) instead of copying the source's turns; ``direction`` is then
+    ``through[0]`` and ``lambda_a`` is not used (the lengths are the target's own)."""
 
     start: PointRef
     direction: PointRef
     lambda_a: float
     lambda_s: LambdaS
+    through: tuple[PointRef, ...] | None = None
 
     def __post_init__(self):
         if not isinstance(self.start, PointRef) or not isinstance(self.direction, PointRef):
             raise InputError("curve target start and direction must be PointRef")
+        if self.through is not None:
+            through = tuple(self.through)
+            if not through or not all(isinstance(p, PointRef) for p in through):
+                raise InputError("curve target 'through' must be a non-empty list of points")
+            if through[0] != self.direction:
+                raise InputError("curve target 'through' must begin with the direction point (the first "
+                                 "leg leaves toward it); set direction to through[0]")
+            object.__setattr__(self, "through", through)
         value = _finite_number(self.lambda_a, "lambda_a")
         if value <= 0:
             raise InputError(f"lambda_a must be > 0, not {value:g}")
@@ -444,6 +459,7 @@ class CurveTarget:
             "direction": self.direction.to_dict(),
             "lambda_a": self.lambda_a,
             "lambda_s": self.lambda_s.to_json(),
+            **({"through": [p.to_dict() for p in self.through]} if self.through is not None else {}),
         }
 
 
@@ -477,6 +493,14 @@ class AxialCurveAnnotation:
             raise InputError(f"axial curve '{self.name}' needs a source start and end, or source points")
         if self.target is not None and not isinstance(self.target, CurveTarget):
             raise InputError(f"axial curve '{self.name}' target must be a CurveTarget or None")
+        if self.target is not None and self.target.through is not None:
+            if self.source_points is None:
+                raise InputError(f"axial curve '{self.name}': target 'through' points need source points "
+                                 "(one target point for each source point after the first)")
+            if len(self.target.through) != len(self.source_points) - 1:
+                raise InputError(f"axial curve '{self.name}' has {len(self.source_points)} source points, so its "
+                                 f"target needs {len(self.source_points) - 1} 'through' points, not "
+                                 f"{len(self.target.through)}")
 
     @property
     def discard(self) -> bool:
@@ -584,6 +608,8 @@ class Annotations:
             if c.target is not None:
                 yield "target", f"axial curve '{c.name}' target start", c.target.start
                 yield "target", f"axial curve '{c.name}' target direction", c.target.direction
+                for i, p in enumerate(c.target.through or ()):
+                    yield "target", f"axial curve '{c.name}' target through[{i}]", p
 
     def has_positions(self, side: str | None = None) -> bool:
         """True when any point (of ``side``, "source" or "target", or of either) has a position."""
@@ -610,7 +636,10 @@ class Annotations:
                 kw["target"] = replace(
                     c.target,
                     start=fn("target", f"axial curve '{c.name}' target start", c.target.start),
-                    direction=fn("target", f"axial curve '{c.name}' target direction", c.target.direction))
+                    direction=fn("target", f"axial curve '{c.name}' target direction", c.target.direction),
+                    through=None if c.target.through is None else tuple(
+                        fn("target", f"axial curve '{c.name}' target through[{i}]", p)
+                        for i, p in enumerate(c.target.through)))
             curves.append(AxialCurveAnnotation(c.name, **kw))
         return Annotations(self.source, self.target, markers, curves, self.landmark_spacing)
 
@@ -780,6 +809,8 @@ def annotations_from_dict(data, *, source: str = "") -> Annotations:
                 point(f"{path}.target.start", "target", tgt["start"]),
                 point(f"{path}.target.direction", "target", tgt["direction"]),
                 tgt["lambda_a"], lambda_s,
+                None if tgt.get("through") is None else [point(f"{path}.target.through[{j}]", "target", r)
+                                                         for j, r in enumerate(tgt["through"])],
             )
         if raw["name"] in names:
             raise InputError(

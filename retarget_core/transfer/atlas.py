@@ -119,8 +119,10 @@ class Atlas:
                 t = ann.target
                 start = resolve_points([t.start], target.faces, len(target.vertices), what=f"{what} target start")
                 toward = resolve_points([t.direction], target.faces, len(target.vertices), what=f"{what} target direction")
+                through = None if t.through is None else resolve_points(
+                    list(t.through), target.faces, len(target.vertices), what=f"{what} target through points")
                 self.target_curves.append(_with_element(
-                    lambda: reconstruct_curve(target, src, start, toward, t.lambda_a), what))
+                    lambda: reconstruct_curve(target, src, start, toward, t.lambda_a, through=through), what))
             landmark_curve += [ci] * len(src)
             landmark_index += list(range(len(src)))
         if not landmark_curve:

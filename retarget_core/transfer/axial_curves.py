@@ -37,10 +37,12 @@ class Curve:
 @dataclass
 class SourceCurve(Curve):
     """A source curve plus its intrinsic description: segment lengths (n-1,) metres and turning
-    angles (n,) radians (0 at both ends)."""
+    angles (n,) radians (0 at both ends); anchors (k,) the landmark index of each of the points
+    it was drawn through (the first landmark, each leg's end)."""
 
     lengths: np.ndarray = None
     turning: np.ndarray = None
+    anchors: np.ndarray = None
 
 
 def _signed_angle(a: np.ndarray, b: np.ndarray, normal: np.ndarray) -> float:
@@ -124,6 +126,7 @@ def build_source_curve(geometry: SurfaceGeometry, name: str, *, start: SurfacePo
     if len(anchors) < 2:
         raise InputError("a curve needs at least two points", element=f"axial curve {name!r}")
     faces, barys, positions, leaving, lengths, turning = [], [], [], [], [], []
+    anchor_index = [0]
     arriving = None
     f, b = int(anchors.faces[0]), anchors.barycentric[0]
     for k in range(len(anchors) - 1):
@@ -145,16 +148,24 @@ def build_source_curve(geometry: SurfaceGeometry, name: str, *, start: SurfacePo
         turning += [0.0] * len(lf)
         arriving = ld[-1]
         f, b = faces[-1], barys[-1]
+        anchor_index.append(len(faces) - 1)
     turning[-1] = 0.0
     return SourceCurve(name, np.array(faces, dtype=np.int64), np.array(barys), np.array(positions),
-                       np.array(leaving), lengths=np.array(lengths), turning=np.array(turning))
+                       np.array(leaving), lengths=np.array(lengths), turning=np.array(turning),
+                       anchors=np.array(anchor_index, dtype=np.int64))
 
 
 def reconstruct_curve(geometry: SurfaceGeometry, source: SourceCurve, start: SurfacePoints,
-                      direction_point: SurfacePoints, lambda_a: float) -> Curve:
+                      direction_point: SurfacePoints, lambda_a: float,
+                      through: SurfacePoints | None = None) -> Curve:
     """Rebuild ``source`` on another surface: from ``start`` leave toward ``direction_point``,
     then trace every segment (length * lambda_a) and turn by the source's turning angles.
+    With ``through`` (one target point per source anchor after the first), the curve is
+    anchored instead: leg k runs from anchor k to through[k] in the source leg's number of
+    landmarks (see :func:`_anchored_curve`).
     Raises InputError when a trace stops early (the curve runs off the mesh boundary)."""
+    if through is not None:
+        return _anchored_curve(geometry, source, start, through)
     if not lambda_a > 0:
         raise InputError(f"lambda_a must be positive, got {lambda_a}", element=f"axial curve {source.name!r}")
     n = len(source)
@@ -184,4 +195,48 @@ def reconstruct_curve(geometry: SurfaceGeometry, source: SourceCurve, start: Sur
             directions[i + 1] = end.direction
     if n == 1:
         directions[0] = d
+    return Curve(source.name, faces, bary, positions, directions)
+
+
+def _anchored_curve(geometry: SurfaceGeometry, source: SourceCurve, start: SurfacePoints,
+                    through: SurfacePoints) -> Curve:
+    """``source`` rebuilt through target anchors: leg k is the geodesic from anchor k (``start``
+    for the first) toward ``through[k]``, cut into as many equal segments as the source's leg k,
+    and ends on its anchor, so the landmarks correspond one to one with the source's
+    (same fraction of the same leg) and every anchor lies (to the shooting tolerance, 1e-5 m) on
+    the target's own anatomy however
+    differently the two fingers bend or twist."""
+    anchors = source.anchors
+    if anchors is None or len(anchors) != len(through) + 1:
+        n_given = "no" if anchors is None else len(anchors) - 1
+        raise InputError(f"the target has {len(through)} 'through' points but the source curve has {n_given} legs",
+                         element=f"axial curve {source.name!r} (target)")
+    n = len(source)
+    faces = np.zeros(n, dtype=np.int64)
+    bary = np.zeros((n, 3))
+    positions = np.zeros((n, 3))
+    directions = np.zeros((n, 3))
+    f, b = int(start.faces[0]), np.asarray(start.barycentric[0], dtype=np.float64)
+    faces[0], bary[0] = f, b
+    positions[0] = b @ geometry.vertices[geometry.faces[f]]
+    for k in range(len(through)):
+        first, last = int(anchors[k]), int(anchors[k + 1])
+        toward = SurfacePoints(through.faces[k:k + 1], through.barycentric[k:k + 1])
+        try:
+            d, total = initial_direction(geometry, f, b, toward)
+        except InputError as err:
+            raise InputError(str(err), element=f"axial curve {source.name!r} (target, leg {k + 1})") from err
+        step = total / max(1, last - first)
+        for i in range(first, last):
+            directions[i] = d
+            end = geometry.trace(f, b, d, step)
+            if end.walked < step * (1 - 1e-6) - 1e-9:
+                raise InputError(f"the reconstructed curve runs off the mesh boundary in leg {k + 1}",
+                                 element=f"axial curve {source.name!r} (target)")
+            f, b, d = end.face, end.barycentric, end.direction
+            faces[i + 1], bary[i + 1], positions[i + 1] = f, b, end.position
+            directions[i + 1] = d
+        # the next leg leaves from where this one's trace ended (within initial_direction's
+        # tolerance of the anchor), as build_source_curve does, so a hand onto itself gives its
+        # own curve back
     return Curve(source.name, faces, bary, positions, directions)

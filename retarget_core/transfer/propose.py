@@ -2,9 +2,10 @@
 a starting point an artist can edit (the paper's annotations were made by hand).
 
 For every finger of the source: an axial curve along the finger's palmar midline from its
-knuckle over the pad to the apex of the fingertip; on the target, the finger of the same role
-(a finger the target lacks is discarded; fingers only the target has are reported), started at
-the same place, pointed along the finger, with lambda_a = the target finger's length over the
+knuckle over the pad to the apex of the fingertip, drawn through the skin straight palmar of
+each articulation; on the target, the finger of the same role (a finger the target lacks is
+discarded; fingers only the target has are reported), through the same anatomical points of its
+own (``through``), with lambda_a = the target finger's length over the
 source's (measured along its segments) and lambda_s = the ratio of their girths. Two palm
 curves (wrist to the central knuckle; first knuckle across to the outermost) cover the palm.
 Virtual markers: the paper's 25 names on anatomical landmarks (:func:`retarget_core.rig.anatomy.marker_sites`),
@@ -72,9 +73,12 @@ def _surface_along(rig: Rig, model: HandModel, origin, direction, *, palm_only=F
     return PointRef(face=int(sp.faces[0]), barycentric=tuple(float(x) for x in sp.barycentric[0]))
 
 
-def _curve_start(rig: Rig, model: HandModel, finger) -> PointRef:
-    """Where a finger's curve starts: on the surface straight palmar of its knuckle."""
-    return _surface_along(rig, model, finger.knuckle, articulation_sites(rig, model, finger, [0], 1.0)[0])
+def _palmar_points(rig: Rig, model: HandModel, finger, ks) -> list[PointRef]:
+    """The finger's palmar midline as anchor points: on the surface straight palmar of the
+    articulations ``ks`` (knuckle first), then the apex of the fingertip."""
+    directions = articulation_sites(rig, model, finger, ks, 1.0)
+    points = [_surface_along(rig, model, finger.segments[k].start, directions[i]) for i, k in enumerate(ks)]
+    return points + [_point(rig, model, finger.tip)]
 
 
 def _palm_sites(rig: Rig, model: HandModel) -> list[PointRef]:
@@ -103,10 +107,20 @@ def propose(source: Rig, target: Rig, *, area_radius: float = 0.004, spacing: fl
     curves, discarded = [], []
     for s in sm.fingers:
         t = tm.finger(s.name)
+        # The curve runs through the palmar midline on both hands (a single geodesic from the
+        # knuckle to the apex spirals round a curled or twisted finger, differently on each hand,
+        # and carried pad contacts to the finger's side); the anchors are every articulation
+        # when both fingers have as many, else the knuckle and the last one.
+        ks_source = list(range(len(s.segments)))
         if t is not None:
+            ks_target = list(range(len(t.segments)))
+            if len(ks_target) != len(ks_source):
+                ks_source, ks_target = [0, ks_source[-1]], [0, ks_target[-1]]
+            t_points = _palmar_points(target, tm, t, ks_target)
             curve_target = CurveTarget(
-                start=_curve_start(target, tm, t),
-                direction=_point(target, tm, t.tip),
+                start=t_points[0],
+                direction=t_points[1],
+                through=tuple(t_points[1:]),
                 lambda_a=round(t.length / s.length, 3),
                 lambda_s=LambdaS.constant(round(t.girth / s.girth, 3)),
             )
@@ -114,8 +128,7 @@ def propose(source: Rig, target: Rig, *, area_radius: float = 0.004, spacing: fl
             curve_target = None
             discarded.append(s.name)
         # the end is the apex of the fingertip: charts then cover the pad, the tip and the nail
-        curves.append(AxialCurveAnnotation(name=s.name, source_start=_curve_start(source, sm, s),
-                                           source_end=_point(source, sm, s.tip), source_points=None,
+        curves.append(AxialCurveAnnotation(name=s.name, source_points=tuple(_palmar_points(source, sm, s, ks_source)),
                                            target=curve_target))
     extra = [f.name for f in tm.fingers if sm.finger(f.name) is None]
 
