@@ -63,6 +63,7 @@ EXAMPLE = {
                 "direction": {"vertex": 30},
                 "lambda_a": 1.0,
                 "lambda_s": {"angles_deg": [0, 90, 180, 270], "values": [1.0, 1.4, 1.0, 1.4]},
+                "through": [{"vertex": 30}, {"face": 31, "barycentric": [0.5, 0.25, 0.25]}],
             },
         },
     ],
@@ -103,6 +104,8 @@ def test_dict_round_trip():
     assert not index.discard
     assert thumb.is_polyline and len(thumb.source_points) == 3
     assert thumb.target.lambda_s.uniform is None
+    assert thumb.target.through == (PointRef(vertex=30), PointRef(face=31, barycentric=(0.5, 0.25, 0.25)))
+    assert index.target.through is None and "through" not in annotations_to_dict(a)["axial_curves"][0]["target"]
 
 
 def test_default_landmark_spacing():
@@ -343,6 +346,21 @@ def test_duplicate_names():
     a = annotations_from_dict(example())
     with pytest.raises(InputError, match="duplicate axial curve name"):
         Annotations(a.source, a.target, a.markers, a.curves + a.curves[:1])
+
+
+def test_through_points_must_match_the_source_legs():
+    data = example()
+    data["axial_curves"][2]["target"]["through"].append({"vertex": 32})
+    bad(data, "3 source points, so its target needs 2 'through' points, not 3")
+    data = example()
+    data["axial_curves"][0]["target"]["through"] = [{"vertex": 30}]
+    bad(data, "'through' points need source points")
+    data = example()
+    data["axial_curves"][2]["target"]["through"][0] = {"vertex": 29}
+    bad(data, "begin with the direction point")
+    data = example()
+    data["axial_curves"][2]["target"]["through"][1] = {"vertex": 99999}
+    bad(data, r"through\[1\]")
 
 
 def test_polyline_needs_two_points():

@@ -70,9 +70,37 @@ def test_loaded_points_are_kept_not_snapped(loaded, work):
         {"position": p["position"]} if "position" in p else {})
     # the kept points (lambda_a / lambda_s are float32 properties in Blender)
     assert ends(built) == [(written(a), written(b)) for a, b in ends(doc)]
+    # the proposed finger curves pass through the finger's palmar anatomy: kept as loaded
+    through = lambda d: {c["name"]: c["target"]["through"] for c in d["axial_curves"]  # noqa: E731
+                         if c["target"] != "discard" and "through" in c["target"]}
+    assert through(doc) and {k: [written(p) for p in v] for k, v in through(doc).items()} == through(built)
     path = work / "kept.json"
     assert 'FINISHED' in bpy.ops.hand_retarget.save_annotations(filepath=str(path))
     assert core("annotations", path, loaded["rig_file"])["markers"] == len(doc["markers"])
+
+
+def test_a_repicked_direction_leads_the_through_points(loaded, work):
+    """Through points begin with the direction point (the core refuses a file where they do
+    not): picking another direction vertex moves the first through point with it and keeps
+    the rest; the saved file passes the core's check."""
+    arm, mesh = loaded["arm"], loaded["mesh"]
+    bpy.context.view_layer.objects.active = mesh
+    settings = mesh.hand_retarget
+    before, _ = ext("annotations").build_document(arm, mesh)
+    name = next(c["name"] for c in before["axial_curves"] if c["target"] != "discard" and "through" in c["target"])
+    settings.curve_index = next(i for i, c in enumerate(settings.curves) if c.name == name)
+    vertex = 7
+    for v in mesh.data.vertices:
+        v.select = v.index == vertex
+    assert 'FINISHED' in bpy.ops.hand_retarget.curve_pick(which='DIRECTION')
+    built, _ = ext("annotations").build_document(arm, mesh)
+    old = next(c for c in before["axial_curves"] if c["name"] == name)["target"]["through"]
+    new = next(c for c in built["axial_curves"] if c["name"] == name)["target"]
+    assert new["through"][0] == new["direction"] != old[0]
+    assert new["through"][1:] == old[1:]
+    path = work / "repicked.json"
+    assert 'FINISHED' in bpy.ops.hand_retarget.save_annotations(filepath=str(path))
+    assert core("annotations", path, loaded["rig_file"])["curves"] == len(built["axial_curves"])
 
 
 def test_an_edited_group_falls_back_to_its_vertices(loaded):

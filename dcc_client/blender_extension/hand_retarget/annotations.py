@@ -6,7 +6,9 @@ The add-on edits the *target* side only:
 - a virtual marker is a vertex group named like the marker ("IndexTip"): one vertex is a point,
   several an area (vertices with weight > 0, ascending ids);
 - an axial curve is an item of the mesh's ``hand_retarget.curves`` list: start vertex,
-  direction vertex, lambda_a, lambda_s (or "discard").
+  direction vertex, lambda_a, lambda_s (or "discard"); the anatomy points a proposed finger
+  curve passes through (``through``, the first being the direction point) are kept from the
+  file and written back, the first following a re-picked direction.
 
 The *source* side (points on the source hand, its mesh signature, landmark spacing) cannot be
 authored on the target mesh: it is kept, per marker / curve name, from the last proposal or
@@ -155,7 +157,7 @@ def _as_face_point(point: dict, first) -> dict:
 def kept_targets(mesh_obj) -> dict:
     """The target points kept from the last file, proposal or cursor pick:
     {"markers": {name: {"points", "vertices"}}, "curves": {name: {"start", "start_vertex",
-    "direction", "direction_vertex"}}}."""
+    "direction", "direction_vertex", "through" (optional)}}}."""
     text = mesh_obj.hand_retarget.target_json
     kept = json.loads(text) if text else {}
     return {"markers": kept.get("markers", {}), "curves": kept.get("curves", {})}
@@ -210,6 +212,8 @@ def _target_points(doc):
         if isinstance(c.get("target"), dict):
             for which in ("start", "direction"):
                 yield c["target"], which, f"curve {c['name']!r} {which}"
+            for j in range(len(c["target"].get("through") or ())):
+                yield c["target"]["through"], j, f"curve {c['name']!r} through point {j}"
 
 
 def to_mesh(doc: dict, smap: dict, mesh_signature: dict) -> tuple[dict, list[str]]:
@@ -233,7 +237,9 @@ def to_mesh(doc: dict, smap: dict, mesh_signature: dict) -> tuple[dict, list[str
         m["target"] = [p for j, p in enumerate(m["target"]) if (id(m["target"]), j) not in dropped]
     doc["markers"] = [m for m in doc.get("markers", []) if m["target"]]
     for c in doc.get("axial_curves", []):
-        if isinstance(c.get("target"), dict) and any((id(c["target"]), k) in dropped for k in ("start", "direction")):
+        if isinstance(c.get("target"), dict) and (
+                any((id(c["target"]), k) in dropped for k in ("start", "direction"))
+                or any((id(c["target"].get("through")), j) in dropped for j in range(len(c["target"].get("through") or ())))):
             c["target"] = "discard"
     doc["target"] = {**(doc.get("target") or {}), **mesh_signature}
     doc["target"].pop("surface_sha256", None)  # the hash is of the service's surface
@@ -301,6 +307,10 @@ def load_document(doc, arm, mesh_obj) -> dict:
             item["direction"] = point_vertex(tgt["direction"], tris, n, f"curve {c['name']!r} direction")
             kept["curves"][c["name"]] = {"start": tgt["start"], "start_vertex": item["start"],
                                          "direction": tgt["direction"], "direction_vertex": item["direction"]}
+            if tgt.get("through"):
+                for j, p in enumerate(tgt["through"]):  # checked here; shown by the curve's overlay only
+                    point_vertex(p, tris, n, f"curve {c['name']!r} through point {j}")
+                kept["curves"][c["name"]]["through"] = tgt["through"]
             item["lambda_a"] = float(tgt["lambda_a"])
             ls = tgt["lambda_s"]
             item["lambda_s"] = float(ls) if isinstance(ls, (int, float)) else 1.0
@@ -401,6 +411,10 @@ def build_document(arm, mesh_obj) -> tuple[dict, list[str]]:
             target = {"start": point("start", item.start_vertex),
                       "direction": point("direction", item.direction_vertex),
                       "lambda_a": float(item.lambda_a), "lambda_s": lambda_s}
+            if keep.get("through"):
+                # the curve passes through the anatomy points it was loaded with; the first is the
+                # direction point, so a re-picked direction moves the first leg's end with it
+                target["through"] = [target["direction"]] + [_as_face_point(p, first) for p in keep["through"][1:]]
         curves.append({"name": item.name, "source": src["curves"][item.name], "target": target})
     doc = {"format": FORMAT, "version": VERSION, "source": src["source"], "target": signature(arm, mesh_obj),
            "landmark_spacing": src.get("landmark_spacing", DEFAULT_SPACING),
