@@ -1,16 +1,21 @@
 """A clip with two root branches that fit about equally well: the delivered curve does not jump.
 
-The LEAP hand (URDF from the ghand wheel, proposed annotations, no edits) has fingers 1.8x the
-source's and a thumb in the palm plane, so the 25 markers cannot all be met and its root has
-two poses about 110 degrees apart that score alike. The clip is built for it: the demo bottle
-held and lifted (contact in every frame) while hand and bottle turn slowly about the vertical
-through the bottle, so the source root turns a known amount every frame. Solved frame by frame
-(coherence pass off), the root flips between the branches; the default preset must deliver a
-curve whose root changes per frame by at most 10 degrees / 10 mm, its shift at most twice the
-source's own largest. Not yet asserted: issue 20's "rotation at most twice the source's" (here
-1.03 degrees against 2 x 0.5): the LEAP hand turns its root about 30 degrees more than the
-source over the lift, where its contacts pull, and the curve spreads that at up to 1 degree a
-frame."""
+The demo robot4 hand (proposed annotations, no edits) has four fingers with other proportions
+than the source's, so the 25 markers cannot all be met and its root has two poses about 55
+degrees apart that score alike. The clip is built for it: the demo bottle held and lifted
+(contact in every frame) while hand and bottle turn slowly about the vertical through the
+bottle, so the source root turns a known amount every frame. Solved frame by frame (coherence
+pass off), the root flips between the branches; the default preset must deliver a curve whose
+root changes per frame by at most 10 degrees / 10 mm, its shift at most twice the source's own
+largest. (Until stop 44 this test used the LEAP hand, whose root flipped by 110 degrees; with
+the proposer's finger curves drawn through every articulation its frames no longer flip, 17
+degrees at most, and neither do the prosthetics', 3 degrees.)
+Here the flips are single frames (out and back), which the fitted spline would also ride over
+without the pass (1.8 degrees / 2.6 mm a frame), so the test asserts that the pass removes them
+from the solved frames as well as the bounds on the delivered curve.
+Not yet asserted: issue 20's "rotation at most twice the source's": the delivered root turns up
+to 1.8 degrees a frame against the source's 0.5.
+"""
 
 import dataclasses
 
@@ -25,7 +30,6 @@ from retarget_core.rig.anatomy import continuous_root_angles, root_transform, se
 from retarget_core.rig.io import resolve_rig
 from retarget_core.solve.config import load_config
 from retarget_core.transfer.propose import propose_annotations
-from tests.installed_models import installed_or_none
 
 TURN_DEG_PER_FRAME = 0.5
 
@@ -62,14 +66,12 @@ def root_steps(rig, q):
 
 @pytest.fixture(scope="module")
 def two_branch_case():
-    if installed_or_none("leap") is None:
-        pytest.skip("the LEAP hand's wheel (ghand) is not installed")
     source = source_rig()
     # the hold and lift: 116 frames starting just after the grasp closed
     window = grasp_window(make_demo_clip("bottle_pick_place", rig=source), 240).slice(124, 240)
     assert (window.contact_labels > 0).any(axis=1).all()
     clip = turned_clip(window, source, TURN_DEG_PER_FRAME)
-    target = resolve_rig("installed:leap", wrapper_resolution=0.004)
+    target = resolve_rig("demo:robot4")
     inputs = RunInputs.of(clip, source, target, propose_annotations(source, target))
     results = {on: retarget(inputs, load_config(None, "default", {"passes.coherence": on}), Executor(workers=2))
                for on in (True, False)}
@@ -84,13 +86,17 @@ def test_the_delivered_root_stays_on_one_branch(two_branch_case):
     # frame by frame the root flips between two branches far apart ...
     alone = results[False]
     solved_angle, _ = root_steps(target, alone.q)
-    assert solved_angle.max() > 60, solved_angle.max()
+    assert solved_angle.max() > 30, solved_angle.max()  # the source turns 0.5 degrees a frame
     # ... that fit about equally well (the solved frames' contact error with and without the
     # coherence pass within 1 mm: neither branch is a bad fit the pass could simply reject)
     coherent = results[True]
     assert abs(coherent.summary["solved_contact_distance_median_mm"]
                - alone.summary["solved_contact_distance_median_mm"]) < 1.0, (coherent.summary, alone.summary)
-    assert coherent.counts["passes"]["coherence"]["jumps_before"] > 0
+    # the pass finds the flips and re-solves them from the neighbours' branch
+    coherence = coherent.counts["passes"]["coherence"]
+    assert coherence["jumps_before"] > 0 and coherence["jumps_after"] < coherence["jumps_before"], coherence
+    coherent_angle, _ = root_steps(target, coherent.q)
+    assert coherent_angle.max() < 0.5 * solved_angle.max(), (coherent_angle.max(), solved_angle.max())
 
     # the delivered curve: no jump
     angle, shift = root_steps(target, coherent.sampled())
@@ -99,10 +105,6 @@ def test_the_delivered_root_stays_on_one_branch(two_branch_case):
     # and it scores like the solved frames
     assert coherent.summary["contact_distance_median_mm"] <= 1.1 * coherent.summary[
         "solved_contact_distance_median_mm"], coherent.summary
-    # without the pass the spline cuts across the flips: the checks above fail there
-    bad_angle, bad_shift = root_steps(target, alone.sampled())
-    assert bad_angle.max() > 10.0 or bad_shift.max() > min(10.0, 2 * src_shift.max()), (bad_angle.max(),
-                                                                                         bad_shift.max())
 
 
 def test_root_angles_made_continuous_keep_every_pose(demo_rigs):

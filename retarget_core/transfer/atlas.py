@@ -49,7 +49,8 @@ TRACE_TOLERANCE = 0.001
 
 #: Version of the on-disk atlas (part of the cache key and stored in the file): bump it whenever
 #: the arrays of :meth:`Atlas.to_arrays` or the way an atlas is built change.
-ATLAS_CACHE_VERSION = 2  # 2: SurfaceGeometry.edge_length over all three edges of each face
+ATLAS_CACHE_VERSION = 3  # 2: SurfaceGeometry.edge_length over all three edges of each face; 3: curve legs shot with
+# a secant or taken from the shortest path, landmarks of a leg end exactly on its point
 
 log = logging.getLogger(__name__)
 

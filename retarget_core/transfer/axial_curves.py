@@ -5,12 +5,13 @@ resampled every ``spacing`` metres of arclength so that landmarks are evenly spr
 described intrinsically by its segment lengths and the turning angle at each landmark (from
 the arriving direction to the leaving one, counter-clockwise about the outward normal), which
 is what lets it be rebuilt on another surface: from the target start point and an initial
-direction, trace each segment (length scaled by lambda_a), turn, and trace again.
+direction, trace each segment (length scaled by lambda_a), turn, and trace again. A target
+given points of its own to pass through (``through``) is rebuilt leg by leg instead, every leg
+ending on its point (:func:`_anchored_curve`).
 """
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,8 +19,6 @@ import numpy as np
 from ..errors import InputError
 from ..mesh.surface_points import SurfacePoints
 from .geodesics import SurfaceGeometry
-
-log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -60,16 +59,34 @@ def _rotate_about(v: np.ndarray, normal: np.ndarray, angle: float) -> np.ndarray
     return v * np.cos(angle) + np.cross(normal, v) * np.sin(angle) + normal * (normal @ v) * (1 - np.cos(angle))
 
 
-def initial_direction(geometry: SurfaceGeometry, face: int, bary: np.ndarray, toward: SurfacePoints):
-    """Unit direction (3,) in which the geodesic from (face, bary) to ``toward`` leaves, and its
-    length (m), by shooting (:func:`_shoot`); logs a warning when the closest shot missed the
-    point by more than 0.5 mm (or 1 % of the length)."""
+def initial_direction(geometry: SurfaceGeometry, face: int, bary: np.ndarray, toward: SurfacePoints) -> np.ndarray:
+    """Unit direction (3,) in which the geodesic from (face, bary) to ``toward`` leaves: the
+    straightest geodesic's when a shot lands on the point (:func:`_shoot`, as :func:`_leg`
+    accepts one), else the shortest path's (its chord to the point 1 cm along it, in the start
+    face's plane)."""
     start = SurfacePoints(np.array([face]), np.asarray(bary, float)[None])
-    d, total, miss = _shoot(geometry, face, bary, toward, geometry.shortest_path(start, toward))
-    if miss > max(5e-4, 0.01 * total):
-        log.warning("a geodesic shot toward a curve point missed it by %.1f mm (a fold, a hole or a very "
-                    "coarse mesh between the points; refine the mesh or move the point)", 1000 * miss)
-    return d, total
+    path = geometry.shortest_path(start, toward)
+    d, total, miss = _shoot(geometry, face, bary, toward, path)
+    if miss <= 1e-4 and total <= 1.01 * _length(path) + 1e-4:
+        return d
+    return _chord_direction(geometry, face, path)
+
+
+def _length(path: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum())
+
+
+def _chord_direction(geometry: SurfaceGeometry, face: int, path: np.ndarray) -> np.ndarray | None:
+    """Unit direction (3,) in ``face``'s plane from the path's start to its point 1 cm along it
+    (or halfway, on a shorter path); None when that chord is along the normal."""
+    seg_lengths = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    arclength = np.concatenate([[0.0], np.cumsum(seg_lengths)])
+    aim_at = min(0.01, 0.5 * arclength[-1])
+    aim = np.array([np.interp(aim_at, arclength, path[:, k]) for k in range(3)])
+    normal = geometry.face_normals[face]
+    chord = aim - path[0] - ((aim - path[0]) @ normal) * normal
+    norm = np.linalg.norm(chord)
+    return chord / norm if norm > 1e-9 else None
 
 
 def _shoot(geometry: SurfaceGeometry, face: int, bary: np.ndarray, toward: SurfacePoints, path: np.ndarray,
@@ -82,21 +99,20 @@ def _shoot(geometry: SurfaceGeometry, face: int, bary: np.ndarray, toward: Surfa
     end's measured sideways sensitivity to the angle (a secant over the last two shots), not the
     flat-plane value ``length``: on a tapering finger geodesics converge, the flat estimate
     under-corrects, and eight flat-plane shots had still missed by 8 mm on a witch's pinky."""
-    seg_lengths = np.linalg.norm(np.diff(path, axis=0), axis=1)
-    total = float(seg_lengths.sum())
+    total = _length(path)
     if total < 1e-9:
         raise InputError("the curve has no length (its points coincide)")
+    seg_lengths = np.linalg.norm(np.diff(path, axis=0), axis=1)
     arclength = np.concatenate([[0.0], np.cumsum(seg_lengths)])
-    aim_at = min(0.01, 0.5 * total)
-    aim = np.array([np.interp(aim_at, arclength, path[:, k]) for k in range(3)])
+    aim = np.array([np.interp(min(0.01, 0.5 * total), arclength, path[:, k]) for k in range(3)])
     goal = geometry.positions(toward)[0]
     normal = geometry.face_normals[face]
     # the log map can point the wrong way at a crease on a coarse mesh: of the two first
     # guesses, the shot that lands nearer the goal starts the search
-    chord = aim - path[0] - ((aim - path[0]) @ normal) * normal
     guesses = [geometry.direction_toward(face, bary, geometry.closest_points(aim[None]))]
-    if np.linalg.norm(chord) > 1e-9:
-        guesses.append(chord / np.linalg.norm(chord))
+    chord = _chord_direction(geometry, face, path)
+    if chord is not None:
+        guesses.append(chord)
     d0 = min(guesses, key=lambda g: float(np.linalg.norm(goal - geometry.trace(face, bary, g, total).position)))
     angle, previous = 0.0, None  # angle turned from d0 about the normal; (angle, lateral) of the last shot
     best = (np.inf, d0, total)
@@ -142,10 +158,10 @@ def _leg(geometry: SurfaceGeometry, start: SurfacePoints, end: SurfacePoints,
     path = geometry.shortest_path(start, end)
     f, b = int(start.faces[0]), np.asarray(start.barycentric[0], dtype=np.float64)
     d, total, miss = _shoot(geometry, f, b, end, path)
-    shortest = float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum())
+    landed = miss <= 1e-4 and total <= 1.01 * _length(path) + 1e-4
     if n_segments is None:
-        n_segments = max(1, int(round(total / spacing)))
-    if miss > 1e-4 or total > 1.01 * shortest + 1e-4:
+        n_segments = max(1, int(round((total if landed else _length(path)) / spacing)))
+    if not landed:
         return _polyline_leg(geometry, start, end, path, n_segments)
     step = total / n_segments
     faces, barys, positions, directions = [f], [b], [b @ geometry.vertices[geometry.faces[f]]], [d]
@@ -229,7 +245,7 @@ def reconstruct_curve(geometry: SurfaceGeometry, source: SourceCurve, start: Sur
     positions = np.zeros((n, 3))
     directions = np.zeros((n, 3))
     f, b = int(start.faces[0]), start.barycentric[0]
-    d, _ = initial_direction(geometry, f, b, direction_point)
+    d = initial_direction(geometry, f, b, direction_point)
     faces[0], bary[0] = f, b
     positions[0] = b @ geometry.vertices[geometry.faces[f]]
     for i in range(n - 1):
