@@ -396,3 +396,25 @@ def test_through_points_are_checked():
         AxialCurveAnnotation(name="f", source_points=(p, PointRef(vertex=4)), target=target)
     ok = AxialCurveAnnotation(name="f", source_points=(p, PointRef(vertex=4), PointRef(vertex=5)), target=target)
     assert ok.to_dict()["target"]["through"] == [{"vertex": 2}, {"vertex": 3}]
+
+
+def test_a_leg_no_shot_lands_on_follows_the_shortest_path(cylinders, monkeypatch):
+    """When shooting cannot land on the leg's end (here forced: every shot reported 1 cm off),
+    the leg is the shortest path cut into equal pieces, both ends exactly on their points
+    (known answer: the generator line of the cylinder, to its vertices' spacing)."""
+    from retarget_core.transfer import axial_curves
+
+    _, (v2, f2) = cylinders
+    r2 = 0.014
+    g = SurfaceGeometry(v2, f2)
+    start, end = (closest_surface_points(v2, f2, np.array([p])) for p in ((r2, 0, 0.02), (r2, 0, 0.11)))
+    monkeypatch.setattr(axial_curves, "_shoot", lambda *a, **k: (np.array([0.0, 0.0, 1.0]), 0.09, 0.01))
+    faces, bary, positions, directions = axial_curves._leg(g, start, end, n_segments=9)
+    assert len(positions) == 10
+    assert np.linalg.norm(positions[0] - start.positions(v2, f2)[0]) < 1e-12
+    assert np.linalg.norm(positions[-1] - end.positions(v2, f2)[0]) < 1e-12
+    assert np.abs(np.arctan2(positions[:, 1], positions[:, 0])).max() < 0.05  # on the generator
+    steps = np.diff(positions[:, 2])
+    assert np.abs(steps - 0.01).max() < 0.001  # 9 equal steps of 10 mm
+    assert (directions[:, 2] > 0.99).all()  # along the axis, toward the end
+    assert np.abs(np.einsum("ij,ij->i", directions, g.face_normals[faces])).max() < 1e-9  # in each face

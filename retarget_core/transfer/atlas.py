@@ -49,8 +49,9 @@ TRACE_TOLERANCE = 0.001
 
 #: Version of the on-disk atlas (part of the cache key and stored in the file): bump it whenever
 #: the arrays of :meth:`Atlas.to_arrays` or the way an atlas is built change.
-ATLAS_CACHE_VERSION = 3  # 2: SurfaceGeometry.edge_length over all three edges of each face; 3: curve legs shot with
-# a secant or taken from the shortest path, landmarks of a leg end exactly on its point
+ATLAS_CACHE_VERSION = 4  # 2: SurfaceGeometry.edge_length over all three edges of each face; 3: curve legs shot with
+# a secant or taken from the shortest path, landmarks of a leg end exactly on its point; 4: a
+# shortest-path leg's directions by central differences
 
 log = logging.getLogger(__name__)
 
