@@ -67,9 +67,8 @@ def initial_direction(geometry: SurfaceGeometry, face: int, bary: np.ndarray, to
     start = SurfacePoints(np.array([face]), np.asarray(bary, float)[None])
     path = geometry.shortest_path(start, toward)
     d, total, miss = _shoot(geometry, face, bary, toward, path)
-    if miss <= 1e-4 and total <= 1.01 * _length(path) + 1e-4:
-        return d
-    return _chord_direction(geometry, face, path)
+    chord = None if miss <= 1e-4 and total <= 1.01 * _length(path) + 1e-4 else _chord_direction(geometry, face, path)
+    return d if chord is None else chord
 
 
 def _length(path: np.ndarray) -> float:
