@@ -98,3 +98,41 @@ def test_polish_stops_at_the_first_step_that_gains_less_than_the_tolerance(solve
         assert cut.objective_after == kept[stop]
         _, one = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, tolerance=1.0)
         assert one.converged and one.accepted == 1 and one.objective_after == kept[0]
+
+
+def test_polish_towards_the_solved_frames_stops_when_it_is_as_good_or_gains_little_of_the_gap(solved_demo):
+    """Given the solved frames, the polish works towards their summed objective: a curve that
+    already scores no worse takes no step; otherwise the tolerance-free run is cut after the
+    first kept step that reached the solved frames' objective or closed less than the
+    tolerance of the remaining gap to it."""
+    problem, _, q = solved_demo
+    rig = problem.rig
+    curves, times = _curves(problem, q)
+    with Executor(workers=1).frame_runner(problem) as runner:
+        fitted = evaluate_curves(curves, times)
+        _, none = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, solved=fitted)
+        assert none.converged and none.accepted == 0 and none.iterations == 0
+        assert none.objective_solved == pytest.approx(none.objective_before, rel=1e-12)
+
+        _, free = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6)
+        _, ref = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=0, solved=q)
+        reference = ref.objective_solved
+        assert np.isfinite(reference) and reference < free.objective_before  # the fit scores worse
+        kept, current = [], free.objective_before
+        for value in free.history:
+            if value < current:
+                kept.append(value)
+                current = value
+        assert len(kept) >= 3
+        before = np.r_[free.objective_before, kept][:-1]
+        gains = (before - np.array(kept)) / np.maximum(before - reference, 1e-300)
+        # a tolerance that cuts the run in its middle (the median of the steps' gap shares)
+        tolerance = float(np.median(gains))
+        reached = np.array(kept) <= reference
+        stops = np.flatnonzero((gains < tolerance) | reached)
+        stop = int(stops[0])
+        _, cut = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6,
+                               tolerance=tolerance, solved=q)
+        assert cut.converged and cut.accepted == stop + 1
+        assert cut.objective_after == kept[stop]
+        assert cut.objective_solved == reference

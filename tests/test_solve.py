@@ -94,6 +94,48 @@ def test_table_term_gradient_with_the_hand_pushed_into_the_table(setup):
     assert np.abs(grad - fd).max() <= 1e-5 * np.abs(fd).max()
 
 
+def test_table_block_is_the_hinge_in_least_squares_form(setup, monkeypatch):
+    """The curve polish's Gauss-Newton model of the table: sum r^2 is lambda_t G_T and 2 J^T r
+    its gradient (central differences), exactly without the floor; with it, the shallow
+    points' rows are capped and the deep ones unchanged."""
+    from retarget_core.solve import objective as objective_module
+
+    problem = _problem(setup, lambda_m=0.0, lambda_c=0.0, lambda_j=0.0, lambda_p=0.0, lambda_t=2.0)
+    objective = method_objective(problem, "root")
+    objective.set_frame(problem.frame_data(0))
+    q = setup[1].dof_values[0].copy()
+    q[3:6] += 0.05  # tilted, so the depth varies across the points inside
+    table_top = problem.table_pose[2, 3] + problem.table_half_extents[2]
+    points = problem.rig.kinematics().skin(q)
+    q[2] += table_top - points[:, 2].min() - 0.006  # the lowest vertex 6 mm deep
+    objective.focus_samples(q)
+    pose = objective.kin.pose(q)
+    n = problem.rig.n_dofs
+    value = objective.value_and_grad(q, want_grad=False)[0]
+    assert value > 0
+
+    monkeypatch.setattr(objective_module, "TABLE_FLOOR_MM", 0.0)
+    r, jt = objective.table_block(pose, n)
+    assert len(r) > 10 and jt.shape == (n, len(r))
+    assert r @ r == pytest.approx(value, rel=1e-12)
+    fd = _central_difference(lambda x: objective.value_and_grad(x, want_grad=False)[0], q)
+    assert np.abs(2 * jt @ r - fd).max() <= 1e-5 * np.abs(fd).max()
+    # the same block inside the system, beside the (here zero) least-squares terms
+    cost, g, h = objective.normal_equations(q, table=True)
+    assert cost == pytest.approx(value, rel=1e-12)
+    np.testing.assert_allclose(g, jt @ r, rtol=1e-10, atol=1e-12 * np.abs(g).max())
+    np.testing.assert_allclose(h, jt @ jt.T, rtol=1e-10, atol=1e-12 * np.abs(h).max())
+    assert objective.normal_equations(q)[0] == 0.0  # the warm start's system leaves it out
+
+    monkeypatch.setattr(objective_module, "TABLE_FLOOR_MM", 0.5)
+    r_floor, jt_floor = objective.table_block(pose, n)
+    np.testing.assert_array_equal(r_floor, r)
+    shallow = r * r / 2.0 < 0.5  # depth in mm below the floor (lambda_t = 2)
+    assert shallow.any() and (~shallow).any()
+    np.testing.assert_allclose(jt_floor[:, ~shallow], jt[:, ~shallow], rtol=1e-12)
+    assert np.all(np.abs(jt_floor[:, shallow]) <= np.abs(jt[:, shallow]) + 1e-12)
+
+
 def test_residual_form_equals_objective_and_its_jacobian_matches(setup):
     problem = _problem(setup, lambda_t=0.0, lambda_p=0.0)
     objective = method_objective(problem, "root")

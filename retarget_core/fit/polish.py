@@ -40,6 +40,8 @@ class PolishReport:
     converged: bool = False  # stopped on the tolerance (a kept step gained too little)
     objective_before: float = float("nan")
     objective_after: float = float("nan")
+    #: the summed objective of the solved frames themselves (what the curve is polished towards)
+    objective_solved: float = float("nan")
     seconds: float = 0.0
     history: list = field(default_factory=list)
 
@@ -47,7 +49,8 @@ class PolishReport:
         # no seconds here: this goes in result.json's counts, which any executor gives alike
         # (the time is in its timings, "curve polish")
         return {"iterations": self.iterations, "accepted": self.accepted, "converged": self.converged,
-                "objective_before": self.objective_before, "objective_after": self.objective_after}
+                "objective_before": self.objective_before, "objective_after": self.objective_after,
+                "objective_solved": self.objective_solved}
 
 
 def basis_matrix(curve: BSplineCurve, times: np.ndarray) -> np.ndarray:
@@ -88,13 +91,16 @@ class CoefficientLayout:
 
 
 def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-                  *, iterations: int = 4, tolerance: float = 0.0,
-                  coupling=None) -> tuple[list[BSplineCurve], PolishReport]:
+                  *, iterations: int = 4, tolerance: float = 0.0, coupling=None,
+                  solved: np.ndarray | None = None) -> tuple[list[BSplineCurve], PolishReport]:
     """``curves`` (one per DOF) with coefficients polished on the frames' objective at
     ``times`` (T,) (see the module docstring); ``runner`` a FrameRunner of the run's problem.
-    ``lower``, ``upper`` (D,) the DOF limits. At most ``iterations`` steps; it stops earlier
-    when a kept step lowered the summed objective by less than ``tolerance`` times its value
-    before the step (0: every iteration runs while steps are kept). ``coupling``: the rig's
+    ``lower``, ``upper`` (D,) the DOF limits. ``solved`` (T, D): the solved frames the curves
+    were fitted to; their summed objective is what the polish works towards. At most
+    ``iterations`` steps; it stops earlier once the curve scores no worse than the solved
+    frames, or when a kept step closed less than ``tolerance`` of the remaining gap to them
+    (without ``solved``: lowered the objective by less than ``tolerance`` of its value; 0: every
+    iteration runs while steps are kept). ``coupling``: the rig's
     :class:`~retarget_core.rig.coupling.DofCoupling`, kept exactly: the frames' systems are
     carried to the free DOFs and each follower's curve is its leader's, mapped
     (:func:`~retarget_core.fit.splines.coupled_curves`)."""
@@ -136,7 +142,14 @@ def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: 
     systems = frame_systems(coeffs)
     current = float(sum(s[1] for s in systems))
     report.objective_before = current
+    reference = 0.0
+    if solved is not None:
+        reference = float(sum(v for _, v in runner.values(frames, np.asarray(solved, dtype=np.float64))))
+        report.objective_solved = reference
     for it in range(max(0, int(iterations))):
+        if solved is not None and current <= reference:
+            report.converged = True  # as good as the frames it was fitted to
+            break
         runner.executor.report("curve polish", it, int(iterations))
         report.iterations += 1
         ab, g = coefficient_system(systems, columns, lifts, n, band)
@@ -173,7 +186,11 @@ def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: 
             value = total(trial)
             report.history.append(value)
             if np.isfinite(value) and value < current:
-                gain = (current - value) / current if current > 0 else 0.0
+                # the share of what was left to gain: towards the solved frames' objective when
+                # known (a relative gain of the whole objective stalls early where most of it is
+                # what no pose removes, e.g. markers a hand of other proportions cannot meet)
+                gap = current - reference
+                gain = (current - value) / gap if gap > 0 else 0.0
                 coeffs, current, improved = trial, value, True
                 mu = max(mu / 3.0, 1e-9)
                 report.accepted += 1

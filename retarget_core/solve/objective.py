@@ -40,6 +40,10 @@ from .collision import CollisionGrids, ObjectCollision, ObjectInHand, SelfCollis
 from .config import RetargetConfig
 
 MM = 1000.0
+#: The depth (mm) below which a point inside the table is modelled as this deep in the curve
+#: polish's Gauss-Newton system (:meth:`FrameObjective.table_block`): the square root of a
+#: hinge has unbounded slope at the surface.
+TABLE_FLOOR_MM = 0.5
 TABLE_MARGIN = 0.03  # metres: sample points farther above the table at the seed are skipped
 PRIOR_EPS = 0.05  # radians
 GAUGE_SIGMA = 0.3  # smallest singular value of the root's rotation axes below which G_R acts: the L1 prior is smoothed (quadratic) within about 3 degrees of zero
@@ -315,14 +319,19 @@ class FrameObjective:
             return np.zeros(0), np.zeros((0, len(q)))
         return np.concatenate([r for r, _ in blocks]), np.hstack([jt for _, jt in blocks]).T
 
-    def normal_equations(self, q: np.ndarray):
+    def normal_equations(self, q: np.ndarray, table: bool = False):
         """The Gauss-Newton system of :meth:`residuals` without forming the (M, D) Jacobian:
         (sum r^2, J^T r (D,), J^T J (D, D)). Summed block by block from each term's transposed
-        Jacobian, which the kinematics hand out contiguous, so no large copy is made."""
+        Jacobian, which the kinematics hand out contiguous, so no large copy is made. ``table``:
+        the table's hinge too, as :meth:`table_block` (the curve polish, which sees no MMA after it)."""
         self.evaluations += 1
         n = len(q)
         cost, g, h = 0.0, np.zeros(n), np.zeros((n, n))
-        for r, jt in self._residual_blocks(self.kin.pose(q), q):
+        pose = self.kin.pose(q)
+        blocks = self._residual_blocks(pose, q)
+        if table:
+            blocks.append(self.table_block(pose, n))
+        for r, jt in blocks:
             cost += float(r @ r)
             g += jt @ r
             h += jt @ jt.T  # numpy hands A @ A.T to BLAS syrk
@@ -333,6 +342,27 @@ class FrameObjective:
         all a Gauss-Newton trial step needs until it is accepted."""
         self.evaluations += 1
         return float(sum(r @ r for r, _ in self._residual_blocks(self.kin.pose(q), q, jacobian=False)))
+
+    def table_block(self, pose, n: int):
+        """G_T as residuals for a Gauss-Newton model: r_i = sqrt(lambda_t depth_i) (depth in mm)
+        over the focused sample points inside the table, so sum r^2 is lambda_t G_T; dr/dq =
+        lambda_t grad(depth) / (2 r) with r floored at TABLE_FLOOR_MM deep, so a point that has
+        barely gone in does not dominate the system. Its J^T r is half the hinge's gradient, as
+        for every least-squares term. (r (M,), transposed Jacobian (n, M)); empty when nothing
+        is inside or the term is off."""
+        w = self.w
+        if self.sample_binding is None or self.table is None or w.lambda_t <= 0:
+            return np.zeros(0), np.zeros((n, 0))
+        sdf, dsdf = box_signed_distance_and_gradient(self.kin.points(pose, self.sample_binding), *self.table)
+        inside = np.flatnonzero(sdf < 0)
+        if not len(inside):
+            return np.zeros(0), np.zeros((n, 0))
+        _, jx = self.kin.points_jacobian(pose, self.sample_binding.subset(inside))  # (I, 3, D)
+        r = np.sqrt(w.lambda_t * MM * -sdf[inside])
+        floor = np.sqrt(w.lambda_t * TABLE_FLOOR_MM)
+        # d depth / dq = -(d sdf / dx) . dx/dq, in mm per unit DOF
+        ddepth = -MM * np.einsum("pa,pad->dp", dsdf[inside], jx)
+        return r, ddepth * (w.lambda_t / (2 * np.maximum(r, floor)))
 
     def _residual_blocks(self, pose, q: np.ndarray, jacobian: bool = True) -> list:
         """Per smooth term: (r (M_b,), transposed Jacobian dr/dq (D, M_b), None without

@@ -233,15 +233,16 @@ def trace_branch(state: dict, frames, seed, current, gap: float = JUMP_MIN_SHIFT
 def frame_systems(state: dict, frames, qs) -> list:
     """At pose ``qs[i]`` (F, D) of each frame: (frame, full objective value, then the
     Gauss-Newton system of its least-squares form: sum r^2, J^T r (D,), J^T J (D, D)), with
-    the prior toward the rest pose as in the full pass. What the polish of the delivered
-    curves (fit/polish.py) sums over frames."""
+    the prior toward the rest pose as in the full pass, and the table's hinge in the system
+    too (nothing settles it after the polish). What the polish of the delivered curves
+    (fit/polish.py) sums over frames."""
     out = []
     for f, q in zip(frames, qs):
         q = np.asarray(q, dtype=np.float64)
         objective = _frame_at(state, f, q)
         objective.focus_samples(q)  # the system needs the focused sets: the value comes with them
         value, _ = objective.value_and_grad(q, want_grad=False)
-        cost, g, h = objective.normal_equations(q)
+        cost, g, h = objective.normal_equations(q, table=True)
         out.append((int(f), float(value), cost, g, h))
     return out
 
