@@ -7,9 +7,11 @@ far worse than the frames it was fitted to. Here q_f = B_f c (each DOF's B-splin
 frame f times its coefficients) and bounded Levenberg-Marquardt steps on the coefficients
 solve the summed Gauss-Newton systems of the frames' least-squares terms (each frame's J^T J
 and J^T r from the workers, carried to the coefficients through the basis; every frame
-touches only degree + 1 coefficients per DOF). A step is kept only when the summed *full*
-objective (table and penetration terms included) at the frames goes down, so the polish never
-makes the delivered curve score worse. Coefficients stay within the DOF limits (a B-spline
+touches only degree + 1 coefficients per DOF; the table's hinge enters the systems too, as
+square-root residuals, since nothing settles it after the polish). A step is kept only when
+the summed *full* objective at the frames goes down, so the polish never makes the delivered
+curve score worse; it works towards the solved frames' summed objective and stops once the
+curve scores as well, or a step closes little of the gap left. Coefficients stay within the DOF limits (a B-spline
 lies in the convex hull of its coefficients, so the curve does too)."""
 
 from __future__ import annotations

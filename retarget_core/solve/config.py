@@ -67,7 +67,7 @@ refinement.resolve_tolerance_linear    [0, 1000]          cm
 fit.control_points                     [4, 10000]
 fit.control_points_per_second          (0, 120]           per second of clip
 fit.polish_iterations                  [0, 100]           Levenberg-Marquardt steps
-fit.polish_tolerance                   [0, 1]             stop on a smaller relative gain
+fit.polish_tolerance                   [0, 1]             stop on a smaller share of the gap
 sampling.*_sample_stride               [1, 1000]          vertices
 ====================================== ================== ===================================
 
@@ -374,8 +374,9 @@ class Fit:
     #: Levenberg-Marquardt iterations polishing the fitted coefficients on the frames' own
     #: objective (fit/polish.py; 0: the least-squares fit is delivered as it is)
     polish_iterations: int = 0
-    #: the polish stops once a kept step lowered the summed objective by less than this share
-    #: of its value (0: all ``polish_iterations`` run while steps are kept)
+    #: the polish stops once the curve scores no worse than the solved frames (summed
+    #: objective at the frames), or once a kept step closed less than this share of the gap
+    #: left to them (0: all ``polish_iterations`` run while steps are kept and a gap is left)
     polish_tolerance: float = 0.0
 
     def n_control_points(self, n_frames: int, fps: float) -> int:
@@ -618,7 +619,8 @@ def _default() -> RetargetConfig:
     # the sampling is what --set weights.lambda_p=10 --set weights.lambda_sc=10 then uses
     cfg.sampling.penetration_sample_stride = 4
     cfg.fit.respect_limits = True  # curves a rig (or a robot) can play back
-    # the delivered curve scored on what the frames were solved on, until a step gains < 1 %
+    # the delivered curve scored on what the frames were solved on, until it scores as well as
+    # the solved frames or a step closes < 1 % of the gap to them
     # (4 fixed steps until stop 37 left Shadow's and the witch's apple curves 10-15 % above
     # their solved frames' contact error and 3-6 mm into the apple, with the objective still
     # falling 25 % a step; see the README's "Issue 20's goals")

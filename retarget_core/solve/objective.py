@@ -311,7 +311,8 @@ class FrameObjective:
         """Least-squares form of the smooth terms: r (M,) and dr/dq (M, D) with sum(r**2) equal
         to the markers, contacts (distance and normal), collision (G_P, G_SC) and prior part of
         E(q). The table's linear hinge is left out (it is zero almost everywhere and MMA, which
-        sees the whole objective, settles it). The stacked, checkable form; the warm start uses
+        sees the whole objective, settles it; the curve polish, which has no MMA after it, adds
+        it as :meth:`table_block`). The stacked, checkable form; the warm start uses
         :meth:`normal_equations` and :meth:`residual_cost`, built from the same blocks."""
         self.evaluations += 1
         blocks = self._residual_blocks(self.kin.pose(q), q)
