@@ -11,8 +11,8 @@ touches only degree + 1 coefficients per DOF; the table's hinge enters the syste
 square-root residuals, since nothing settles it after the polish). A step is kept only when
 the summed *full* objective at the frames goes down, so the polish never makes the delivered
 curve score worse; it works towards the solved frames' summed objective and stops once the
-curve scores as well, or a step closes little of the gap left. Coefficients stay within the DOF limits (a B-spline
-lies in the convex hull of its coefficients, so the curve does too)."""
+curve scores as well, or a step closes little of the gap left. Coefficients stay within the
+DOF limits (a B-spline lies in the convex hull of its coefficients, so the curve does too)."""
 
 from __future__ import annotations
 
@@ -39,7 +39,7 @@ class PolishReport:
 
     iterations: int = 0
     accepted: int = 0
-    converged: bool = False  # stopped on the tolerance (a kept step gained too little)
+    converged: bool = False  # stopped before the cap: as good as the solved frames, or a step gained too little
     objective_before: float = float("nan")
     objective_after: float = float("nan")
     #: the summed objective of the solved frames themselves (what the curve is polished towards)
