@@ -8,6 +8,7 @@ from scipy.spatial.transform import Rotation
 from retarget_core.mesh.geometry import (
     box_local,
     box_signed_distance,
+    box_inside,
     box_signed_distance_and_gradient,
     box_signed_distance_local,
     face_normals,
@@ -88,6 +89,27 @@ def test_box_signed_distance_in_a_turned_frame_and_its_gradient_by_differences(r
     numeric = np.stack([(box_signed_distance(points + h * e, pose, half) - box_signed_distance(points - h * e, pose, half))
                         / (2 * h) for e in np.eye(3)], axis=1)
     np.testing.assert_allclose(grad, numeric, atol=1e-6)
+
+
+def test_box_inside_gives_the_inside_points_with_the_full_signed_distance_and_gradient(rng):
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_rotvec([-0.4, 0.2, 0.7]).as_matrix()
+    pose[:3, 3] = [0.1, 0.3, -0.2]
+    half = np.array([0.05, 0.03, 0.02])
+    local = rng.uniform(-1.5, 1.5, size=(400, 3)) * half  # about 30 % inside
+    local[:3] = [[0.0, 0.0, 0.0], [0.0501, 0.0, 0.0], [0.0, -0.03 + 1e-6, 0.01]]  # centre, just out, just in
+    points = local @ pose[:3, :3].T + pose[:3, 3]
+    sdf, grad = box_signed_distance_and_gradient(points, pose, half)
+    ids, depth, normal = box_inside(points, pose, half)
+    expected = np.flatnonzero(sdf < 0)
+    assert 50 < len(expected) < 350  # both kinds of point are there
+    np.testing.assert_array_equal(ids, expected)
+    np.testing.assert_array_equal(depth, sdf[expected])
+    np.testing.assert_array_equal(normal, grad[expected])
+    assert 0 in ids and 1 not in ids and 2 in ids
+    np.testing.assert_allclose(depth[ids == 2], -1e-6, atol=1e-12)
+    empty = box_inside(points[sdf >= 0], pose, half)
+    assert [len(a) for a in empty] == [0, 0, 0] and empty[2].shape == (0, 3)
 
 
 def test_rounded_box_without_rounding_is_the_box_and_with_rounding_is_smaller(rng):

@@ -67,8 +67,8 @@ class CoefficientLayout:
     coefficients flat DOF after DOF (``offsets``, n in all) and, for the solve, interleaved
     (coefficient k of every DOF, then k + 1: ``order[p]`` is the flat index at position p,
     ``position`` its inverse), where each frame touches a window of degree + 1 per DOF, so
-    the summed system is banded (``band``); per frame, ``columns`` (the positions it touches)
-    and ``lifts`` A_f (D, len(columns)) with q_f = A_f c[columns]."""
+    the summed system is banded (``band``); per frame, ``columns`` (the positions it touches,
+    ascending) and ``lifts`` A_f (D, len(columns)) with q_f = A_f c[columns]."""
 
     def __init__(self, curves: list[BSplineCurve], times: np.ndarray):
         self.bases = [basis_matrix(c, times) for c in curves]
@@ -82,13 +82,15 @@ class CoefficientLayout:
         self.columns, self.lifts = [], []
         for f in range(len(times)):
             touched = [np.nonzero(b[f])[0] for b in self.bases]
-            self.columns.append(self.position[np.concatenate([t + self.offsets[d] for d, t in enumerate(touched)])])
+            cols = self.position[np.concatenate([t + self.offsets[d] for d, t in enumerate(touched)])]
             a = np.zeros((d_count, sum(len(t) for t in touched)))
             at = 0
             for d, t in enumerate(touched):
                 a[d, at:at + len(t)] = self.bases[d][f, t]
                 at += len(t)
-            self.lifts.append(a)
+            ascending = np.argsort(cols)  # so a frame's upper half of the band is its block's
+            self.columns.append(cols[ascending])
+            self.lifts.append(a[:, ascending])
         self.band = int(max(c.max() - c.min() for c in self.columns))
 
 
@@ -213,17 +215,22 @@ def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: 
 def coefficient_system(systems, columns, lifts, n: int, band: int):
     """The frames' Gauss-Newton systems carried to the coefficients: J^T J in upper banded
     storage (band + 1, n) (``ab[band + i - j, j] = H[i, j]``, what ``solveh_banded`` reads) and
-    J^T r (n,), with q_f = A_f c over the coefficients ``columns[f]`` (``lifts[f]`` is A_f);
-    ``systems``: the workers' (frame, value, sum r^2, J^T r, J^T J) per frame."""
-    ab = np.zeros((band + 1, n))
+    J^T r (n,), with q_f = A_f c over the coefficients ``columns[f]`` (ascending; ``lifts[f]``
+    is A_f); ``systems``: the workers' (frame, value, sum r^2, J^T r, J^T J) per frame."""
+    flat = np.zeros((band + 1) * n)  # ab row-major: entry (band + i - j, j) at (band + i - j) n + j
     g = np.zeros(n)
+    upper = {}  # the upper triangle's (row, column) indices of a k x k block, per k
     for (_, _, _, gf, hf), cols, a in zip(systems, columns, lifts):
-        g[cols] += a.T @ gf
-        block = a.T @ hf @ a
-        i, j = np.meshgrid(cols, cols, indexing="ij")
-        upper_half = i <= j
-        np.add.at(ab, (band + i[upper_half] - j[upper_half], j[upper_half]), block[upper_half])
-    return ab, g
+        g[cols] += gf @ a
+        block = a.T @ (hf @ a)
+        k = len(cols)
+        if k not in upper:
+            upper[k] = np.triu_indices(k)
+        iu, ju = upper[k]
+        # ascending columns: the block's upper triangle is the band's; within one frame no
+        # (row, column) repeats, so a plain indexed add is exact
+        flat[(band + cols[iu] - cols[ju]) * n + cols[ju]] += block[iu, ju]
+    return flat.reshape(band + 1, n), g
 
 
 def _with(curves, coeffs, offsets):

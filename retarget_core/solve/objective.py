@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..mesh.geometry import box_signed_distance, box_signed_distance_and_gradient
+from ..mesh.geometry import box_inside, box_signed_distance
 from ..mesh.surface_points import SurfacePoints
 from ..rig.model import Rig
 from .collision import CollisionGrids, ObjectCollision, ObjectInHand, SelfCollision
@@ -270,13 +270,12 @@ class FrameObjective:
 
         if self.sample_binding is not None and self.table is not None and w.lambda_t > 0:
             s = kin.points(pose, self.sample_binding)
-            sdf, dsdf = box_signed_distance_and_gradient(s, *self.table)
-            inside = sdf < 0
-            if inside.any():
-                value += w.lambda_t * float(-sdf[inside].sum() * MM)
+            inside, sdf, dsdf = box_inside(s, *self.table)
+            if len(inside):
+                value += w.lambda_t * float(-sdf.sum() * MM)
                 if want_grad:
                     cot = np.zeros_like(s)
-                    cot[inside] -= (w.lambda_t * MM) * dsdf[inside]
+                    cot[inside] -= (w.lambda_t * MM) * dsdf
                     grad += kin.points_vjp(pose, self.sample_binding, cot)
 
         if self.object_collision is not None and data.object_pose is not None:
@@ -354,15 +353,14 @@ class FrameObjective:
         w = self.w
         if self.sample_binding is None or self.table is None or w.lambda_t <= 0:
             return np.zeros(0), np.zeros((n, 0))
-        sdf, dsdf = box_signed_distance_and_gradient(self.kin.points(pose, self.sample_binding), *self.table)
-        inside = np.flatnonzero(sdf < 0)
+        inside, sdf, dsdf = box_inside(self.kin.points(pose, self.sample_binding), *self.table)
         if not len(inside):
             return np.zeros(0), np.zeros((n, 0))
         _, jx = self.kin.points_jacobian(pose, self.sample_binding.subset(inside))  # (I, 3, D)
-        r = np.sqrt(w.lambda_t * MM * -sdf[inside])
+        r = np.sqrt(w.lambda_t * MM * -sdf)
         floor = np.sqrt(w.lambda_t * TABLE_FLOOR_MM)
         # d depth / dq = -(d sdf / dx) . dx/dq, in mm per unit DOF
-        ddepth = -MM * np.einsum("pa,pad->dp", dsdf[inside], jx)
+        ddepth = -MM * np.einsum("pa,pad->dp", dsdf, jx)
         return r, ddepth * (w.lambda_t / (2 * np.maximum(r, floor)))
 
     def _residual_blocks(self, pose, q: np.ndarray, jacobian: bool = True) -> list:
