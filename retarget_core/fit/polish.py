@@ -132,7 +132,7 @@ def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: 
         systems = runner.systems(frames, poses(c))
         if not couple:
             return systems
-        return [(f, v, cost, lift.T @ g, lift.T @ h @ lift) for f, v, cost, g, h in systems]
+        return [(f, cost, lift.T @ g, lift.T @ h @ lift) for f, cost, g, h in systems]
     lo = np.concatenate([np.full(b.shape[1], lower[d]) for d, b in enumerate(lay.bases)])
     hi = np.concatenate([np.full(b.shape[1], upper[d]) for d, b in enumerate(lay.bases)])
 
@@ -144,7 +144,7 @@ def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: 
 
     mu = 1e-3
     systems = frame_systems(coeffs)
-    current = float(sum(s[1] for s in systems))
+    current = total(coeffs)
     report.objective_before = current
     reference = 0.0
     if solved is not None:
@@ -216,11 +216,11 @@ def coefficient_system(systems, columns, lifts, n: int, band: int):
     """The frames' Gauss-Newton systems carried to the coefficients: J^T J in upper banded
     storage (band + 1, n) (``ab[band + i - j, j] = H[i, j]``, what ``solveh_banded`` reads) and
     J^T r (n,), with q_f = A_f c over the coefficients ``columns[f]`` (ascending; ``lifts[f]``
-    is A_f); ``systems``: the workers' (frame, value, sum r^2, J^T r, J^T J) per frame."""
+    is A_f); ``systems``: the workers' (frame, sum r^2, J^T r, J^T J) per frame."""
     flat = np.zeros((band + 1) * n)  # ab row-major: entry (band + i - j, j) at (band + i - j) n + j
     g = np.zeros(n)
     upper = {}  # the upper triangle's (row, column) indices of a k x k block, per k
-    for (_, _, _, gf, hf), cols, a in zip(systems, columns, lifts):
+    for (_, _, gf, hf), cols, a in zip(systems, columns, lifts):
         g[cols] += gf @ a
         block = a.T @ (hf @ a)
         k = len(cols)

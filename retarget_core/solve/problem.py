@@ -231,19 +231,19 @@ def trace_branch(state: dict, frames, seed, current, gap: float = JUMP_MIN_SHIFT
 
 
 def frame_systems(state: dict, frames, qs) -> list:
-    """At pose ``qs[i]`` (F, D) of each frame: (frame, full objective value, then the
-    Gauss-Newton system of its least-squares form: sum r^2, J^T r (D,), J^T J (D, D)), with
-    the prior toward the rest pose as in the full pass, and the table's hinge in the system
-    too (nothing settles it after the polish). What the polish of the delivered curves
-    (fit/polish.py) sums over frames."""
+    """At pose ``qs[i]`` (F, D) of each frame: (frame, then the Gauss-Newton system of its
+    least-squares form: sum r^2, J^T r (D,), J^T J (D, D)), with the prior toward the rest
+    pose as in the full pass, and the table's hinge in the system too (nothing settles it
+    after the polish). What the polish of the delivered curves (fit/polish.py) sums over
+    frames; the objective's value there is :func:`frame_values`' (the polish already has it
+    from the step it kept)."""
     out = []
     for f, q in zip(frames, qs):
         q = np.asarray(q, dtype=np.float64)
         objective = _frame_at(state, f, q)
-        objective.focus_samples(q)  # the system needs the focused sets: the value comes with them
-        value, _ = objective.value_and_grad(q, want_grad=False)
+        objective.focus_samples(q)  # the collision and table rows are those of the focused sets
         cost, g, h = objective.normal_equations(q, table=True)
-        out.append((int(f), float(value), cost, g, h))
+        out.append((int(f), cost, g, h))
     return out
 
 
