@@ -6,9 +6,9 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from retarget_core.mesh.geometry import (
+    box_inside,
     box_local,
     box_signed_distance,
-    box_inside,
     box_signed_distance_and_gradient,
     box_signed_distance_local,
     face_normals,
