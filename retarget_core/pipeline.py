@@ -256,8 +256,8 @@ def build_problem(clip: Clip, pairs: ContactPairs, source: Rig, target: Rig, ann
     """Steps 2 and 3: the paired contacts carried onto ``target`` through the atlas, the marker
     and contact targets of every frame, and the per-frame problem the passes solve. Returns
     (problem, the clip transfer)."""
-    transferred = transfer_clip(pairs, source, target, annotations, workers=executor.workers,
-                                cache_dir=executor.cache_dir)
+    transferred = transfer_clip(pairs, source, target, annotations, keep_patch_size=config.contacts.keep_patch_size,
+                                workers=executor.workers, cache_dir=executor.cache_dir)
     markers = marker_targets(clip, source, target, annotations)
     if config.markers.scale_fingers:
         markers = scale_finger_markers(markers, source, target)

@@ -68,7 +68,7 @@ def gradient_speedup(clip, source, target, annotations, config: RetargetConfig, 
     MMA settings (the paper's solve: no warm start, ``maxeval`` evaluations from the rest
     fingers) on ``n_frames`` contact frames spread over the clip."""
     pairs = pair_contacts(clip)
-    transferred = transfer_clip(pairs, source, target, annotations)
+    transferred = transfer_clip(pairs, source, target, annotations, keep_patch_size=config.contacts.keep_patch_size)
     markers = marker_targets(clip, source, target, annotations)
     contacts = contact_targets(clip, pairs, transferred.contacts, keep_source_gap=config.contacts.keep_source_gap)
     problem = Problem(target, config, markers, contacts, clip.object_poses, clip.table_pose, clip.table_half_extents,

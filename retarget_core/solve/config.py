@@ -226,9 +226,14 @@ class Contacts:
     """Contact targets. ``keep_source_gap = False`` aims each target contact point at its object
     point (the paper); ``True`` moves the object point out along the object normal by the gap
     the source pair had there (captured contacts are "within a threshold", often 1-4 mm open;
-    closing that gap bends the fingers a few degrees past the capture)."""
+    closing that gap bends the fingers a few degrees past the capture). ``keep_patch_size =
+    False`` takes the contacts on the target hand where the atlas puts them (the paper: a patch
+    grows with lambda_s); ``True`` then gives each contact patch the size it had on the source
+    hand (:func:`~retarget_core.transfer.clip_transfer.size_patches`): its points are paired
+    with the same object points, so only a patch of the object's size can meet them."""
 
     keep_source_gap: bool = False
+    keep_patch_size: bool = False
 
 
 @dataclass
@@ -611,6 +616,8 @@ def _default() -> RetargetConfig:
     cfg.solver.root_maxeval = 30
     cfg.solver.warm_start_iterations = 20
     cfg.contacts.keep_source_gap = True
+    # robot4's index tip in box_pinch: 8.30 -> 2.91 mm contact error (README "Stop 47")
+    cfg.contacts.keep_patch_size = True
     cfg.refinement.patience = 3  # measured: rounds after the third stale one never helped
     cfg.refinement.resolve_tolerance_angular = 0.5  # re-solve only frames the filter really moved
     cfg.refinement.resolve_tolerance_linear = 0.05
