@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..mesh.geometry import face_normals
+from ..mesh.geometry import vertex_normals
 from ..mesh.surface_points import SurfacePoints, closest_surface_points
 from ..pairing.dense import ContactPairs
 from ..rig.hand_cut import cap_faces, uncapped_faces
@@ -54,8 +54,9 @@ def transfer_clip(pairs: ContactPairs, source: Rig, target: Rig, annotations: An
     if keep_patch_size:
         sv, sf = source.surface.vertices, source.surface.faces
         src = SurfacePoints(pairs.hand_face, pairs.hand_barycentric).positions(sv, sf)
-        contacts = size_patches(contacts, pairs.frame_offsets, src, face_normals(sv, sf)[pairs.hand_face],
-                                target.surface.vertices, target.surface.faces)
+        src_normals = np.einsum("nk,nkd->nd", pairs.hand_barycentric, vertex_normals(sv, sf)[sf[pairs.hand_face]])
+        contacts = size_patches(contacts, pairs.frame_offsets, src, src_normals, target.surface.vertices,
+                                target.surface.faces)
     return ClipTransfer(atlas, pairs, off_caps(contacts, target))
 
 
@@ -91,8 +92,8 @@ def size_patches(contacts: TransferredContacts, frame_offsets: np.ndarray, sourc
     surface to the spread (RMS distance from the centroid) it had on the source.
 
     A patch is a frame's contacts (``frame_offsets`` (T+1,) splits them) on one axial curve,
-    split into :func:`patches` by their source positions ``source_points`` (N, 3) m (unit
-    surface normals there ``source_normals`` (N, 3)); spreads are measured in each patch's
+    split into :func:`patches` by their source positions ``source_points`` (N, 3) m (surface
+    normals there ``source_normals`` (N, 3)); spreads are measured in each patch's
     tangent plane on both hands. The
     charts place a patch and scale it with the finger (lambda_s, and the target's curvature on
     top), but its points are paired one by one with the same object points, so a patch larger
@@ -102,10 +103,62 @@ def size_patches(contacts: TransferredContacts, frame_offsets: np.ndarray, sourc
     point moves in the patch's tangent plane by (scale - 1) times its offset from the centroid
     and is put back on the surface (closest point); a second pass corrects what the surface's
     curvature took off."""
+    src = np.asarray(source_points, dtype=np.float64)
+    src_normals = np.asarray(source_normals, dtype=np.float64)
+    # interpolated vertex normals: a point on an edge has one normal whichever face holds it
+    normals = vertex_normals(target_vertices, target_faces)
+
+    def positions(c):
+        return np.einsum("nk,nkd->nd", c.barycentric, target_vertices[target_faces[c.face]])
+
+    def scale_of(patch, tgt, c):
+        """(scale, tangent offsets (K, 3)) of one patch at the target positions tgt."""
+        at = np.einsum("nk,nkd->nd", c.barycentric[patch], normals[target_faces[c.face[patch]]])
+        offset = _tangent_offsets(tgt[patch], at)
+        spread = float(np.sqrt((offset ** 2).sum(axis=1).mean()))
+        if spread < 1e-9:
+            return 1.0, offset
+        source_spread = float(np.sqrt((_tangent_offsets(src[patch], src_normals[patch]) ** 2).sum(axis=1).mean()))
+        return float(np.clip(source_spread / spread, 1 / PATCH_SCALE_LIMIT, PATCH_SCALE_LIMIT)), offset
+
+    # which patches to size is decided once, at the charts' positions: a later pass corrects
+    # every one of them (a threshold met again after the first pass would pick by rounding)
+    tgt = positions(contacts)
+    chosen = [patch for patch in _contact_patches(contacts, frame_offsets, src, link)
+              if abs(scale_of(patch, tgt, contacts)[0] - 1.0) >= PATCH_SCALE_TOLERANCE]
+    if not chosen:
+        return contacts  # every patch as on the source (identical hands give their contacts back exactly)
+    moved = np.concatenate(chosen)
     for _ in range(max(1, int(passes))):
-        contacts = _size_patches_once(contacts, frame_offsets, source_points, source_normals, target_vertices,
-                                      target_faces, link)
+        tgt = positions(contacts)
+        desired = tgt.copy()
+        for patch in chosen:
+            scale, offset = scale_of(patch, tgt, contacts)
+            # each point moved along its tangent offset only: the least move that sizes the
+            # patch (laying the offsets flat through the central point instead left the
+            # alternate human's patches 0.2-0.4 mm further from a rigid fit of the source's)
+            desired[patch] = tgt[patch] + (scale - 1.0) * offset
+        placed = closest_surface_points(target_vertices, target_faces, desired[moved])
+        face, bary = contacts.face.copy(), contacts.barycentric.copy()
+        face[moved], bary[moved] = placed.faces, placed.barycentric
+        contacts = replace(contacts, face=face, barycentric=bary)
     return contacts
+
+
+def _contact_patches(contacts: TransferredContacts, frame_offsets: np.ndarray, source_points: np.ndarray,
+                     link: float) -> list[np.ndarray]:
+    """The contact ids of each patch (of two or more kept contacts): per frame and axial curve,
+    the :func:`patches` of their source points (N, 3)."""
+    out = []
+    keep = ~contacts.dropped
+    for f in range(len(frame_offsets) - 1):
+        lo, hi = int(frame_offsets[f]), int(frame_offsets[f + 1])
+        ids = lo + np.flatnonzero(keep[lo:hi])
+        for c in np.unique(contacts.curve[ids]):
+            mine = ids[contacts.curve[ids] == c]
+            labels = patches(source_points[mine], link)
+            out.extend(p for p in (mine[labels == k] for k in range(labels.max(initial=-1) + 1)) if len(p) >= 2)
+    return out
 
 
 def _tangent_offsets(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -115,47 +168,6 @@ def _tangent_offsets(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
     n /= max(float(np.linalg.norm(n)), 1e-12)
     offset = points - points.mean(axis=0)
     return offset - np.outer(offset @ n, n)
-
-
-def _size_patches_once(contacts, frame_offsets, source_points, source_normals, target_vertices, target_faces, link):
-    src, src_normals = np.asarray(source_points, dtype=np.float64), np.asarray(source_normals, dtype=np.float64)
-    tgt = np.einsum("nk,nkd->nd", contacts.barycentric, target_vertices[target_faces[contacts.face]])
-    normals = face_normals(target_vertices, target_faces)
-    desired = tgt.copy()
-    moved = np.zeros(len(tgt), dtype=bool)
-    keep = ~contacts.dropped
-    for f in range(len(frame_offsets) - 1):
-        lo, hi = int(frame_offsets[f]), int(frame_offsets[f + 1])
-        ids = lo + np.flatnonzero(keep[lo:hi])
-        for c in np.unique(contacts.curve[ids]):
-            mine = ids[contacts.curve[ids] == c]
-            labels = patches(src[mine], link)
-            for k in range(labels.max(initial=-1) + 1):
-                patch = mine[labels == k]
-                if len(patch) < 2:
-                    continue
-                # spreads in each patch's tangent plane: on a round fingertip the points put
-                # back on the surface then spread about as far as in the plane
-                offset = _tangent_offsets(tgt[patch], normals[contacts.face[patch]])
-                spread = float(np.sqrt((offset ** 2).sum(axis=1).mean()))
-                if spread < 1e-9:
-                    continue
-                source_offset = _tangent_offsets(src[patch], src_normals[patch])
-                scale = float(np.sqrt((source_offset ** 2).sum(axis=1).mean())) / spread
-                scale = float(np.clip(scale, 1 / PATCH_SCALE_LIMIT, PATCH_SCALE_LIMIT))
-                if abs(scale - 1.0) < PATCH_SCALE_TOLERANCE:
-                    continue  # as on the source (identical hands give their contacts back exactly)
-                # each point moved along its tangent offset only: the least move that sizes the
-                # patch (laying the offsets flat through the central point instead left the
-                # alternate human's patches 0.2-0.4 mm further from a rigid fit of the source's)
-                desired[patch] = tgt[patch] + (scale - 1.0) * offset
-                moved[patch] = True
-    if not moved.any():
-        return contacts
-    placed = closest_surface_points(target_vertices, target_faces, desired[moved])
-    face, bary = contacts.face.copy(), contacts.barycentric.copy()
-    face[moved], bary[moved] = placed.faces, placed.barycentric
-    return replace(contacts, face=face, barycentric=bary)
 
 
 def off_caps(contacts: TransferredContacts, target: Rig) -> TransferredContacts:
