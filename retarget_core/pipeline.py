@@ -153,7 +153,8 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
                 if config.fit.polish_iterations > 0 and config.method == "contacts":
                     curves, polish = polish_curves(runner, curves, times, target.lower, target.upper,
                                                    iterations=config.fit.polish_iterations,
-                                                   tolerance=config.fit.polish_tolerance, coupling=coupling,
+                                                   tolerance=config.fit.polish_tolerance,
+                                                   patience=config.fit.polish_patience, coupling=coupling,
                                                    solved=q)
                     fit_report["polish"] = polish.to_dict()
                     timings["curve polish"] = polish.seconds

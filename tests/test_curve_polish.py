@@ -98,6 +98,18 @@ def test_polish_stops_at_the_first_step_that_gains_less_than_the_tolerance(solve
         assert cut.objective_after == kept[stop]
         _, one = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, tolerance=1.0)
         assert one.converged and one.accepted == 1 and one.objective_after == kept[0]
+        # with patience, only that many small steps in a row stop it (every step is small here)
+        _, two = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, tolerance=1.0, patience=2)
+        assert two.converged and two.accepted == 2 and two.objective_after == kept[1]
+        # a small step followed by a large one does not stop it: the run goes on past the first
+        # small step until `patience` small ones come in a row
+        stop2 = next((i for i in range(1, len(gains)) if gains[i] < tolerance and gains[i - 1] < tolerance), None)
+        _, cut2 = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, tolerance=tolerance,
+                                patience=2)
+        if stop2 is None:
+            assert not cut2.converged and cut2.accepted == len(kept)
+        else:
+            assert cut2.converged and cut2.accepted == stop2 + 1 and cut2.objective_after == kept[stop2]
 
 
 def test_polish_towards_the_solved_frames_stops_when_it_is_as_good_or_gains_little_of_the_gap(solved_demo):

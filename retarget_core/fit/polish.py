@@ -95,16 +95,16 @@ class CoefficientLayout:
 
 
 def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-                  *, iterations: int = 4, tolerance: float = 0.0, coupling=None,
+                  *, iterations: int = 4, tolerance: float = 0.0, patience: int = 1, coupling=None,
                   solved: np.ndarray | None = None) -> tuple[list[BSplineCurve], PolishReport]:
     """``curves`` (one per DOF) with coefficients polished on the frames' objective at
     ``times`` (T,) (see the module docstring); ``runner`` a FrameRunner of the run's problem.
     ``lower``, ``upper`` (D,) the DOF limits. ``solved`` (T, D): the solved frames the curves
     were fitted to; their summed objective is what the polish works towards. At most
     ``iterations`` steps; it stops earlier once the curve scores no worse than the solved
-    frames, or when a kept step closed less than ``tolerance`` of the remaining gap to them
-    (without ``solved``: lowered the objective by less than ``tolerance`` of its value; 0: every
-    iteration runs while steps are kept). ``coupling``: the rig's
+    frames, or when ``patience`` kept steps in a row each closed less than ``tolerance`` of the
+    remaining gap to them (without ``solved``: lowered the objective by less than ``tolerance``
+    of its value; 0: every iteration runs while steps are kept). ``coupling``: the rig's
     :class:`~retarget_core.rig.coupling.DofCoupling`, kept exactly: the frames' systems are
     carried to the free DOFs and each follower's curve is its leader's, mapped
     (:func:`~retarget_core.fit.splines.coupled_curves`)."""
@@ -143,6 +143,7 @@ def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: 
         return float(sum(v for _, v in runner.values(frames, poses(c))))
 
     mu = 1e-3
+    small = 0  # kept steps in a row that closed less than the tolerance
     systems = frame_systems(coeffs)
     current = total(coeffs)
     report.objective_before = current
@@ -202,7 +203,8 @@ def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: 
             mu *= 4.0
         if not improved:
             break
-        if gain < tolerance:
+        small = small + 1 if gain < tolerance else 0
+        if small >= max(1, int(patience)):
             report.converged = True
             break
         systems = frame_systems(coeffs)
