@@ -620,7 +620,7 @@ def _default() -> RetargetConfig:
     cfg.solver.root_maxeval = 30
     cfg.solver.warm_start_iterations = 20
     cfg.contacts.keep_source_gap = True
-    # robot4's index tip in box_pinch: 8.30 -> 2.91 mm contact error (README "Stop 47")
+    # robot4's index tip in box_pinch: 8.32 -> 2.16 mm delivered contact error (README "Stop 47")
     cfg.contacts.keep_patch_size = True
     cfg.refinement.patience = 3  # measured: rounds after the third stale one never helped
     cfg.refinement.resolve_tolerance_angular = 0.5  # re-solve only frames the filter really moved
