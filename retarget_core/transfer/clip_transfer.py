@@ -39,7 +39,7 @@ def atlas_for(source: Rig, target: Rig, annotations: Annotations, *, workers: in
 
 
 def transfer_clip(pairs: ContactPairs, source: Rig, target: Rig, annotations: Annotations, *,
-                  keep_patch_size: bool = True, workers: int = 1, cache_dir=None) -> ClipTransfer:
+                  keep_patch_size: bool = False, workers: int = 1, cache_dir=None) -> ClipTransfer:
     """Carry every paired contact of every frame (the hand ends of ``pairs``, on ``source``'s
     surface) onto ``target`` in one vectorised pass (``workers``, ``cache_dir``: see
     :func:`atlas_for`); with ``keep_patch_size`` (the configuration's
