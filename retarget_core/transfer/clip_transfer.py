@@ -93,10 +93,9 @@ def size_patches(contacts: TransferredContacts, frame_offsets: np.ndarray, sourc
 
     A patch is a frame's contacts (``frame_offsets`` (T+1,) splits them) on one axial curve,
     split into :func:`patches` by their source positions ``source_points`` (N, 3) m (surface
-    normals there ``source_normals`` (N, 3)); spreads are measured in each patch's
-    tangent plane on both hands. The
-    charts place a patch and scale it with the finger (lambda_s, and the target's curvature on
-    top), but its points are paired one by one with the same object points, so a patch larger
+    normals there ``source_normals`` (N, 3)); spreads are measured in each patch's tangent plane
+    on both hands. The charts place a patch and scale it with the finger (lambda_s, and the
+    target's curvature on top), but its points are paired one by one with the same object points, so a patch larger
     than the object's leaves each point millimetres from its object point whatever the pose
     (robot4's index tip in box_pinch: 2.6x the source's, 8.3 mm contact error with the best
     rigid fit of the patch 8.3 mm). The object sizes a contact, the charts place it. Each
