@@ -139,6 +139,13 @@ def test_annotate_propose_and_transfer_commands(clip_dir, tmp_path, capsys):
     report = json.loads((tmp_path / "out" / "box_pinch.transfer.json").read_text())
     assert report["contacts"] > 0 and 0.0 <= report["transferred_share"] <= 1.0
     assert (tmp_path / "out" / "box_pinch.transfer.png").is_file()
+    # the paper preset's charts alone: each patch as the atlas sizes it; the default keeps the
+    # source's patch size, so its spread is no further from the source's
+    assert main(["transfer", "--clip", str(clip_dir / "box_pinch.npz"), "--rig", "demo:alien@0.006",
+                 "--annotations", str(annotations), "--out", str(tmp_path / "paper"), "--preset", "paper"]) == 0
+    paper = json.loads((tmp_path / "paper" / "box_pinch.transfer.json").read_text())
+    assert paper["contacts"] == report["contacts"]
+    assert abs(report["spread_ratio_median"] - 1) <= abs(paper["spread_ratio_median"] - 1) + 1e-9, (report, paper)
 
 
 def test_transfer_with_annotations_for_another_rig_is_a_clear_error(clip_dir, tmp_path, capsys):

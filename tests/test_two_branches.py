@@ -10,9 +10,14 @@ root changes per frame by at most 10 degrees / 10 mm, its shift at most twice th
 largest. (Until stop 44 this test used the LEAP hand, whose root flipped by 110 degrees; with
 the proposer's finger curves drawn through every articulation its frames no longer flip, 17
 degrees at most, and neither do the prosthetics', 3 degrees.)
-Here the flips are single frames (out and back), which the fitted spline would also ride over
-without the pass (1.8 degrees / 2.6 mm a frame), so the test asserts that the pass removes them
-from the solved frames as well as the bounds on the delivered curve.
+With the patch sizing of the default preset (``contacts.keep_patch_size``, stop 48) the solved
+frames no longer flip out and back: they switch branch for good (frame 103, 61 degrees; with the
+pass: frame 56, 52 degrees). There the branch the hand came on stops fitting: traced on across
+it, its objective rises 5x (25315 against 5069 on the branch taken, stop 48's trace), so the
+pass keeps that switch ("a jump no branch avoids") and removes the others (18 jumps -> 2). Until
+stop 47 the test asked the pass to halve the largest solved step; now it asks for what the pass
+promises: far fewer jumps, none larger than before, and none of them out and back (a flip the
+neighbours' branch would have covered); the delivered curve's bounds are unchanged.
 Not yet asserted: issue 20's "rotation at most twice the source's": the delivered root turns up
 to 1.8 degrees a frame against the source's 0.5.
 """
@@ -64,6 +69,21 @@ def root_steps(rig, q):
     return angle, 1000 * np.linalg.norm(world[1:, :3, 3] - world[:-1, :3, 3], axis=1)
 
 
+def out_and_back(rig, q, angle=10.0, shift=10.0, within=5):
+    """The steps k of q (T, D) where the root turns more than ``angle`` degrees or moves more
+    than ``shift`` mm and is back within both of frame k's pose at one of the next ``within``
+    frames: a flip, not a switch of branch."""
+    world = np.array([rig.kinematics().pose(x).world[0] for x in q])
+
+    def apart(i, j):
+        r = world[i, :3, :3].T @ world[j, :3, :3]
+        a = np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1)))
+        return a > angle or 1000 * np.linalg.norm(world[i, :3, 3] - world[j, :3, 3]) > shift
+
+    return [k for k in range(len(q) - 1)
+            if apart(k, k + 1) and any(not apart(k, j) for j in range(k + 2, min(len(q), k + 2 + within)))]
+
+
 @pytest.fixture(scope="module")
 def two_branch_case():
     source = source_rig()
@@ -95,8 +115,10 @@ def test_the_delivered_root_stays_on_one_branch(two_branch_case):
     # the pass finds the flips and re-solves them from the neighbours' branch
     coherence = coherent.counts["passes"]["coherence"]
     assert coherence["jumps_before"] > 0 and coherence["jumps_after"] < coherence["jumps_before"], coherence
-    coherent_angle, _ = root_steps(target, coherent.q)
-    assert coherent_angle.max() < 0.5 * solved_angle.max(), (coherent_angle.max(), solved_angle.max())
+    assert coherence["jumps_after"] <= coherence["jumps_before"] // 3, coherence
+    coherent_angle, coherent_shift = root_steps(target, coherent.q)
+    assert coherent_angle.max() <= solved_angle.max(), (coherent_angle.max(), solved_angle.max())
+    assert not out_and_back(target, coherent.q), out_and_back(target, coherent.q)
 
     # the delivered curve: no jump
     angle, shift = root_steps(target, coherent.sampled())
@@ -130,3 +152,25 @@ def test_root_angles_made_continuous_keep_every_pose(demo_rigs):
         np.testing.assert_allclose(kin.pose(a).world[0], kin.pose(b).world[0], atol=1e-12)
     # a single frame has nothing to follow: it comes back as it was
     np.testing.assert_array_equal(continuous_root_angles(rig, charts[5:6]), charts[5:6])
+
+
+def test_out_and_back_tells_a_flip_from_a_switch(demo_rigs):
+    """Known answers: a root that turns 60 degrees for one frame and back is a flip; one that
+    turns 60 degrees and stays is a switch; a steady 0.5 degrees a frame is neither."""
+    rig = demo_rigs["source_human"]
+    q = np.repeat(rig.rest_pose[None], 20, axis=0)
+    base = root_transform(rig, rig.rest_pose)
+
+    def turned(deg):
+        m = np.eye(4)
+        m[:3, :3] = _rot_z(np.radians(deg))
+        return set_root_transform(rig, rig.rest_pose, m @ base)
+
+    steady = np.array([turned(0.5 * t) for t in range(20)])
+    assert out_and_back(rig, steady) == []
+    flip = steady.copy()
+    flip[8] = turned(60.0)
+    assert out_and_back(rig, flip) == [7]  # out at step 7 (back at step 8 is no flip from frame 8's view)
+    switch = steady.copy()
+    switch[8:] = [turned(60.0 + 0.5 * t) for t in range(12)]
+    assert out_and_back(rig, switch) == []

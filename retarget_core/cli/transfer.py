@@ -16,13 +16,24 @@ def add_commands(sub) -> None:
     transfer.add_argument("--source-rig", help="source rig (default: the one the clip records)")
     transfer.add_argument("--frames", help="comma-separated frames (default: all; the PNG shows 4)")
     transfer.add_argument("--out", help="folder for the report (.json) and the picture (.png)")
+    transfer.add_argument("--preset", default="default", choices=["default", "paper"],
+                          help="the preset whose contact settings (contacts.keep_patch_size) a retarget would use")
     transfer.set_defaults(func=_cmd_transfer)
     t_demo = sub.add_parser("transfer-demo", help="every demo clip onto every demo hand: shares and spread")
     t_demo.add_argument("--clips", required=True, help="folder of demo clips")
     t_demo.add_argument("--target", action="append", help="only this demo hand (repeatable)")
     t_demo.add_argument("--resolution", type=float, default=0.004, help="target hands' mesh cell size (m)")
     t_demo.add_argument("--every", type=int, default=5, help="use every N-th frame")
+    t_demo.add_argument("--preset", default="default", choices=["default", "paper"],
+                        help="the preset whose contact settings (contacts.keep_patch_size) a retarget would use")
     t_demo.set_defaults(func=_cmd_transfer_demo)
+
+
+def _keep_patch_size(args) -> bool:
+    """The preset's ``contacts.keep_patch_size``: the transfer a retarget with it would make."""
+    from ..solve.config import load_config
+
+    return load_config(None, args.preset).contacts.keep_patch_size
 
 
 def _transfer_setup(args):
@@ -53,11 +64,11 @@ def _cmd_transfer(args) -> int:
         clip = load_clip(clip_path)
         jobs.append((Path(clip_path).stem, clip, pair_contacts(clip, frames=frames), clip_path))
     _transfer_table(jobs, resolve_rig(args.source_rig) if args.source_rig else None, target, annotations,
-                    Path(args.out) if args.out else None, frames)
+                    Path(args.out) if args.out else None, frames, _keep_patch_size(args))
     return 0
 
 
-def _transfer_table(jobs, source, target, annotations, out, frames) -> None:
+def _transfer_table(jobs, source, target, annotations, out, frames, keep_patch_size: bool) -> None:
     """Transfer each (name, clip, pairs, clip path) onto ``target`` from ``source`` (None: the rig
     each clip records); print a row each; with ``out``, write the report (JSON) and a picture
     (PNG) per clip."""
@@ -68,7 +79,7 @@ def _transfer_table(jobs, source, target, annotations, out, frames) -> None:
     print(f"{'clip':<22} {'contacts':>9} {'transferred':>11} {'dropped':>9} {'spread':>8}  dropped by curve")
     for name, clip, pairs, clip_path in jobs:
         src = source or resolve_rig(clip_source_rig(clip, clip_path))
-        result = transfer_clip(pairs, src, target, annotations)
+        result = transfer_clip(pairs, src, target, annotations, keep_patch_size=keep_patch_size)
         report = transfer_report(result, src, target)
         _print_transfer_row(name, report)
         if out is not None:
@@ -106,6 +117,7 @@ def _cmd_transfer_demo(args) -> int:
     pairs = {name: pair_contacts(clip, frames=range(0, clip.n_frames, step)) for name, clip in loaded}
     sources = {}
     targets = args.target or list(DEMO_HANDS)
+    keep_patch_size = _keep_patch_size(args)
     for target_name in targets:
         target = demo_hand(target_name, resolution=args.resolution)
         print(f"\n== {target_name} ({target.surface.n_vertices} vertices)")
@@ -114,6 +126,7 @@ def _cmd_transfer_demo(args) -> int:
             spec = clip_source_rig(clip, path)
             source = sources.get(spec) or sources.setdefault(spec, resolve_rig(spec))
             annotations = propose_annotations(source, target)
-            report = transfer_report(transfer_clip(pairs[name], source, target, annotations), source, target)
+            report = transfer_report(transfer_clip(pairs[name], source, target, annotations,
+                                                   keep_patch_size=keep_patch_size), source, target)
             _print_transfer_row(name, report)
     return 0

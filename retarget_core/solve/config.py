@@ -620,13 +620,10 @@ def _default() -> RetargetConfig:
     cfg.solver.root_maxeval = 30
     cfg.solver.warm_start_iterations = 20
     cfg.contacts.keep_source_gap = True
-    # contacts.keep_patch_size stays off here: it takes robot4's index tip in box_pinch from
-    # 8.32 to 2.16 mm delivered contact error (README "Stop 47"), but on the two-branch clip of
-    # tests/test_two_branches.py the coherence pass then leaves a 52 degree root jump in the
-    # solved frames (61 without the pass; the test asks for less than half, which the patches
-    # as the charts give them meet), it spent 965 s on robot4's box_pinch cell, and a Rigify-style
-    # armature and the plain hand of one mesh got 1.65 / 2.05 mm (dcc_client test_any_armature): on with
-    # --set contacts.keep_patch_size=true until the coherence pass copes
+    # each contact patch keeps its source size (transfer/clip_transfer.py size_patches): the
+    # atlas made robot4's index-tip patch in box_pinch 2.6x the object's, 8.32 -> 2.16 mm
+    # delivered contact error (README "Stop 47"; Shadow 4.04 -> 1.62, human_alt 2.07 -> 1.59)
+    cfg.contacts.keep_patch_size = True
     cfg.refinement.patience = 3  # measured: rounds after the third stale one never helped
     cfg.refinement.resolve_tolerance_angular = 0.5  # re-solve only frames the filter really moved
     cfg.refinement.resolve_tolerance_linear = 0.05
