@@ -26,7 +26,7 @@ import numpy as np
 
 from .errors import InputError
 from .solve.problem import (Problem, build_solver_state, frame_systems, frame_values, solve_frames,
-                            solve_root_sequence, trace_branches_in_turn)
+                            solve_root_sequence, trace_branch)
 
 Progress = Callable[[str, int, int], None]
 
@@ -201,14 +201,13 @@ class FrameRunner:
         calls = [(np.asarray(frames, dtype=np.int64), seed) for frames, seed in zip(segments, seeds)]
         return self._run(solve_root_sequence, calls, sum(len(s) for s in segments), label)
 
-    def trace_branches(self, groups, *, label: str | None = None) -> list:
-        """:func:`~retarget_core.solve.problem.trace_branches_in_turn` over each group of
-        ``groups`` ((runs, seeds, currents): frame arrays, a seed (D,) each, their frames'
-        solutions); the groups in parallel, the runs of a group one after the other (so the
-        result does not depend on the worker count). Rows in group order."""
-        calls = [([np.asarray(r, dtype=np.int64) for r in runs], [np.asarray(s, dtype=np.float64) for s in seeds],
-                  [np.asarray(c, dtype=np.float64) for c in currents]) for runs, seeds, currents in groups]
-        return self._run(trace_branches_in_turn, calls, sum(len(r) for runs, _, _ in groups for r in runs), label)
+    def trace_branches(self, runs, seeds, currents, *, label: str | None = None) -> list:
+        """:func:`~retarget_core.solve.problem.trace_branch` over each run of ``runs`` (frame
+        arrays) from its seed, against its frames' ``currents``; the runs in parallel, each
+        sequential (so the result does not depend on the worker count)."""
+        calls = [(np.asarray(r, dtype=np.int64), np.asarray(s, dtype=np.float64), np.asarray(c, dtype=np.float64))
+                 for r, s, c in zip(runs, seeds, currents)]
+        return self._run(trace_branch, calls, sum(len(r) for r in runs), label)
 
     def _chunks(self, frames, qs, *extra):
         """Calls of (frames, qs (F, D), *extra) in chunks sized for the workers."""

@@ -367,11 +367,8 @@ def coherence_pass(runner: FrameRunner, problem: Problem, q: np.ndarray):
     among those the lowest summed objective, replaces the solutions
     (:func:`~retarget_core.refine.branches.choose_branch_path`); a new round traces from the
     jumps it still has (:data:`COHERENCE_ROUNDS` at most). A jump no branch avoids (the
-    objective itself turns the hand there) is left. The runs are fixed before they start; the
-    forward runs are traced one after the other in one worker, the backward ones in another,
-    and a run ends where it meets a branch an earlier run of its direction carried
-    (:func:`~retarget_core.solve.problem.trace_branches_in_turn`), so the result does not depend
-    on the worker count."""
+    objective itself turns the hand there) is left. The runs are fixed before they start and
+    each is sequential in one worker, so the result does not depend on the worker count."""
     t0 = time.perf_counter()
     source_points = problem.markers.source_positions
     own = q.copy()
@@ -389,12 +386,10 @@ def coherence_pass(runner: FrameRunner, problem: Problem, q: np.ndarray):
             break
         if round_:
             runner.executor.report("coherence", round_, COHERENCE_ROUNDS)
-        # two groups, forward and backward, each traced in turn: a run ends where it meets one
-        # before it (from the jump nearest the clip's start forward, from the last backward)
-        forward, backward = branch_runs(jumps, 1), branch_runs(jumps, -1)[::-1]
-        groups = [(forward, [q[r[0] - 1] for r in forward], [q[r] for r in forward]),
-                  (backward, [q[r[0] + 1] for r in backward], [q[r] for r in backward])]
-        for f, qf, value, own_value, evals, error in runner.trace_branches(groups):
+        forward, backward = branch_runs(jumps, 1), branch_runs(jumps, -1)
+        runs = forward + backward
+        seeds = [q[r[0] - 1] for r in forward] + [q[r[0] + 1] for r in backward]
+        for f, qf, value, own_value, evals, error in runner.trace_branches(runs, seeds, [q[r] for r in runs]):
             report.frames += 1
             report.evaluations += evals
             if error:

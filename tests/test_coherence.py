@@ -9,7 +9,7 @@ from retarget_core.execute import Executor
 from retarget_core.pipeline import coherence_pass
 from retarget_core.refine.branches import (JUMP_MIN_ANGLE, branch_jumps, branch_runs, choose_branch_path,
                                           rigid_steps)
-from retarget_core.solve.problem import build_solver_state, frame_value, trace_branch, trace_branches_in_turn
+from retarget_core.solve.problem import build_solver_state, frame_value
 
 
 
@@ -133,24 +133,3 @@ def test_frames_turned_off_their_branch_are_brought_back(solved_demo, workers):
     assert again_report.jumps_after <= again_report.jumps_before, vars(again_report)
     if again_report.jumps_before == 0:
         np.testing.assert_array_equal(again, q)
-
-
-def test_a_run_ends_where_it_meets_a_branch_an_earlier_run_carried(solved_demo):
-    """Two forward runs over frames turned off their branch, both seeded on the neighbours'
-    branch: traced alone, the second re-solves every frame up to where it rejoins; traced after
-    the first, it ends at its first frame, where it meets the first run's branch."""
-    problem, config, q = solved_demo
-    turned = q.copy()
-    turned[20:26, problem.rig.dof_index("root_rz")] += 1.5
-    state = build_solver_state(problem)
-    runs, seeds = [np.arange(20, 30), np.arange(22, 30)], [q[19], q[21]]
-    currents = [turned[r] for r in runs]
-    alone = [trace_branch(state, r, s, c) for r, s, c in zip(runs, seeds, currents)]
-    assert [row[0] for row in alone[0]] == list(range(20, 27))  # back on the own branch at 26
-    assert [row[0] for row in alone[1]] == list(range(22, 27))
-    rows = trace_branches_in_turn(state, runs, seeds, currents)
-    assert [row[0] for row in rows] == list(range(20, 27)) + [22]
-    # the first run is traced as it is alone, and the second's one frame is its frame alone
-    for got, want in zip(rows, alone[0] + alone[1][:1]):
-        assert got[0] == want[0] and got[2] == pytest.approx(want[2], rel=1e-9)
-        np.testing.assert_allclose(got[1], want[1], atol=1e-9)

@@ -208,14 +208,12 @@ def _frame_at(state: dict, frame: int, q: np.ndarray, stage: str = "fingers") ->
     return objective
 
 
-def trace_branch(state: dict, frames, seed, current, gap: float = JUMP_MIN_SHIFT, traced: dict | None = None) -> list:
+def trace_branch(state: dict, frames, seed, current, gap: float = JUMP_MIN_SHIFT) -> list:
     """Carry a branch along the run ``frames`` (in order): each frame re-solved seeded from the
     solution before it (the first from ``seed`` (D,)). The run ends where it rejoins the
-    frame's ``current`` solution (F, D) or a solution ``traced`` already holds for that frame
-    (frame -> list of marker points (Np, 3) of earlier runs; every marker point within ``gap``
-    metres of it: the same branch from there on), or a solve fails; with ``traced`` its own
-    solutions are added to it. Returns [(frame, q, value, current value, evaluations, error)]
-    for the frames visited (values: :func:`frame_value`)."""
+    frame's ``current`` solution (F, D) (every marker point within ``gap`` metres of it: the
+    same branch from there on) or a solve fails. Returns [(frame, q, value, current value,
+    evaluations, error)] for the frames visited (values: :func:`frame_value`)."""
     problem: Problem = state["problem"]
     kin = problem.rig.kinematics()
     m = problem.markers
@@ -226,28 +224,9 @@ def trace_branch(state: dict, frames, seed, current, gap: float = JUMP_MIN_SHIFT
         (_, q, evals, error), = solve_frames(state, [f], [seed], "fingers")
         value = np.inf if error else frame_value(state, f, q)
         out.append((int(f), q, value, frame_value(state, f, mine), evals, error))
-        if error:
-            break
-        points = kin.points(q, binding)
-        known = [kin.points(mine, binding)] + (traced.get(int(f), []) if traced is not None else [])
-        if traced is not None:
-            traced.setdefault(int(f), []).append(points)
-        if any(np.linalg.norm(points - other, axis=1).max() <= gap for other in known):
+        if error or np.linalg.norm(kin.points(q, binding) - kin.points(mine, binding), axis=1).max() <= gap:
             break
         seed = q
-    return out
-
-
-def trace_branches_in_turn(state: dict, runs, seeds, currents, gap: float = JUMP_MIN_SHIFT) -> list:
-    """:func:`trace_branch` over ``runs`` one after the other, each ending also where it meets a
-    branch an earlier run of them carried: the runs from neighbouring jumps mostly carry the
-    same branch, and each re-solved it to the end of the clip (robot4's box_pinch window: 40-80
-    frames a run, 965 s of a 1237 s cell). One call is one worker's sequence, so the result does
-    not depend on the worker count. Returns every run's :func:`trace_branch` rows in run order."""
-    traced: dict = {}
-    out = []
-    for frames, seed, current in zip(runs, seeds, currents):
-        out += trace_branch(state, frames, seed, current, gap, traced)
     return out
 
 
