@@ -160,7 +160,8 @@ def warm_start(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, u
       1.36 mm, contact 3.71 mm).
     Self collision stays in whole (at the seed the fingers are at rest): without it, contacts
     that pull two fingers together closed them through each other (robot4 on apple_rotate:
-    self intersection median 6.4 % of the hand's volume, 0.11 % with it)."""
+    self intersection median 6.4 % of the hand's volume, 0.11 % with it). Its rows follow the
+    trial steps (:func:`gauss_newton_warm_start`'s ``refocus``)."""
 
     def then_whole(q):
         # the points near the table, the object or another part, picked again where the warm
@@ -185,8 +186,8 @@ def warm_start(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, u
 
 
 def gauss_newton_warm_start(objective: FrameObjective, seed: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-                            active: np.ndarray, iterations: int, coupling: DofCoupling | None = None
-                            ) -> np.ndarray:
+                            active: np.ndarray, iterations: int, coupling: DofCoupling | None = None,
+                            refocus: bool = True) -> np.ndarray:
     """Bounded Levenberg-Marquardt steps on the least-squares form of the objective
     (:meth:`FrameObjective.residuals`, through its normal equations), from ``seed`` (D,); at
     most ``iterations`` trial steps. MMA alone needs hundreds of evaluations to close a
@@ -194,7 +195,10 @@ def gauss_newton_warm_start(objective: FrameObjective, seed: np.ndarray, lower: 
     polishes the whole objective. DOFs at a bound whose step points outward are held for that
     step (projected LM); the system is (A, A) with A the active DOF count, so no large
     factorisation is ever formed. With a ``coupling`` the system is carried to the free DOFs
-    (P^T g, P^T H P with P = :meth:`DofCoupling.lift`) and ``active`` must leave the followers out."""
+    (P^T g, P^T H P with P = :meth:`DofCoupling.lift`) and ``active`` must leave the followers out.
+    ``refocus``: each trial adds to the self-collision rows the parts' points near another part
+    at the trial pose, so a step that closes two parts into each other is judged with them
+    (False: the rows of the focus the objective came with)."""
     active_idx = np.nonzero(active)[0]
     couple = coupling is not None and not coupling.empty
     lift = coupling.lift() if couple else None
@@ -225,6 +229,16 @@ def gauss_newton_warm_start(objective: FrameObjective, seed: np.ndarray, lower: 
         trial[active_idx[free]] = np.clip(x[free] + step, lo[free], hi[free])
         if couple:
             trial = coupling.apply(trial)
+        if refocus and objective.widen_self_focus(trial):
+            # parts the trial brings near each other join the self-collision rows before the
+            # trial is judged: focused only at the open-handed seed, contacts that pull two
+            # fingertips together closed them through each other in one step, unseen. Outside
+            # at q their rows are zero, so q's cost and system change only where one was inside
+            # at q already.
+            seen = objective.residual_cost(q)
+            if seen != cost:
+                cost = seen
+                g_all, h_all = system(q)
         # a trial is judged by its cost alone; the Jacobian is formed only for a step taken
         # (rejected trials, often half of them, cost a fraction of an iteration)
         cost_new = objective.residual_cost(trial)

@@ -168,6 +168,11 @@ class FrameObjective:
             return inside_all > 0
         return inside_all > int((box_signed_distance(self.kin.points(pose, self.sample_binding), *self.table) < 0).sum())
 
+    def widen_self_focus(self, q: np.ndarray) -> bool:
+        """Add to the self-collision rows the parts' points near another part at pose q (D,),
+        keeping those focused; True when any was added (:meth:`SelfCollision.widen`)."""
+        return self.self_collision is not None and self.self_collision.widen(self.kin.pose(q))
+
     def keep_object_out(self, q: np.ndarray) -> None:
         """Until the next :meth:`focus_samples`, the hand-object term costs only for the points
         (and object-point items) outside the object (the part) at pose q (D,): what is inside
