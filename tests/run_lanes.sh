@@ -23,7 +23,7 @@ ignore=(--ignore=tests/service)
 for f in "${MOVED[@]}"; do ignore+=("--ignore=$f"); done
 
 (
-  "$BIN/python" -m pytest --durations=15 --basetemp="$work/service" tests/service "${MOVED[@]}" \
+  "$BIN/python" -m pytest --durations=40 --basetemp="$work/service" tests/service "${MOVED[@]}" \
     > "$work/service.log" 2>&1
   echo $? > "$work/service.rc"
   HANDRETARGET_REQUIRE_BLENDER=1 "$BLENDER_BIN/python" -m pytest --basetemp="$work/blender" \
@@ -31,7 +31,7 @@ for f in "${MOVED[@]}"; do ignore+=("--ignore=$f"); done
   echo $? > "$work/blender.rc"
 ) &
 (
-  "$BIN/python" -m pytest --durations=15 --basetemp="$work/core" tests "${ignore[@]}" > "$work/core.log" 2>&1
+  "$BIN/python" -m pytest --durations=40 --basetemp="$work/core" tests "${ignore[@]}" > "$work/core.log" 2>&1
   echo $? > "$work/core.rc"
 ) &
 wait

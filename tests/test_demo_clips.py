@@ -126,3 +126,45 @@ def test_euler_decomposition_round_trips_including_gimbal_lock():
     rotations += [matrix(0.3, np.pi / 2, 0.2), matrix(-1.0, -np.pi / 2, 0.7)]
     for r in rotations:
         np.testing.assert_allclose(matrix(*euler_xyz_from_matrix(r)), r, atol=1e-9)
+
+
+def test_contact_labels_match_measuring_every_object_vertex(demos, rig):
+    """label_contacts measures only object vertices that a hand vertex is near; the labels are
+    those of measuring every object vertex against the whole hand surface (libigl), on the
+    four frames with most contacts of two clips, and with the object scaled (a pose that is not rigid)."""
+    import igl
+
+    from retarget_core.clip.demo import label_contacts
+
+    faces = rig.surface.faces
+    owner = rig.surface.dense_weights(rig.n_joints).argmax(axis=1)
+    codes = np.array([contact_code(n) for n in rig.joint_names], dtype=np.uint8)
+    for name in ("mug_drink", "box_pinch"):
+        obj, _, clip = demos[name]
+        frames = np.sort(np.argsort((clip.contact_labels > 0).sum(axis=1), kind="stable")[-4:])
+        poses = clip.object_poses[frames].copy()
+        poses[-1, :3, :3] *= 1.05  # scaled about the object's origin
+        hand = clip.hand_vertices[frames]
+        labels = label_contacts(rig, hand, clip.object_vertices, poses)
+        for k in range(len(frames)):
+            world = clip.object_vertices @ poses[k][:3, :3].T + poses[k][:3, 3]
+            d2, face, _ = igl.point_mesh_squared_distance(world, hand[k].astype(np.float64), faces)
+            expected = np.where(d2 <= CONTACT_THRESHOLD**2, codes[owner[faces[face, 0]]], 0)
+            assert (expected > 0).sum() > 10, (name, k)  # a grasp frame (a pinch touches ~20 vertices): something to compare
+            np.testing.assert_array_equal(labels[k], expected)
+
+
+def test_a_demo_clip_asked_again_is_an_independent_copy():
+    """make_demo_clip keeps what it generated: asked again it gives the same clip, and what a
+    caller does to its copy does not reach the next one."""
+    from retarget_core.clip.demo import make_demo_clip
+
+    rig = source_rig(0.006)
+    first = make_demo_clip("box_pinch", time_scale=0.05, resolution=0.006, rig=rig)
+    kept = first.contact_labels.copy()
+    first.contact_labels[:] = 0
+    first.hand_vertices += 1.0
+    again = make_demo_clip("box_pinch", time_scale=0.05, resolution=0.006, rig=rig)
+    np.testing.assert_array_equal(again.contact_labels, kept)
+    assert (kept > 0).any() and np.abs(again.hand_vertices).max() < 1.0
+    assert again is not first and again.hand_vertices is not first.hand_vertices

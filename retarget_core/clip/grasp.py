@@ -15,6 +15,7 @@ import numpy as np
 
 from ..mesh.surface_points import SurfacePoints
 from ..rig.anatomy import hand_fingers, palm_vertices, root_transform, set_root_transform
+from ..rig.hand_model import HandModel
 from ..rig.model import Rig
 
 Sdf = Callable[[np.ndarray], np.ndarray]
@@ -33,9 +34,10 @@ def frame_from_directions(palm_direction, finger_direction) -> np.ndarray:
 
 
 # ---- palm --------------------------------------------------------------------------------------
-def palm_center(rig: Rig) -> np.ndarray:
-    """(3,) centre of the palm surface at rest, hand frame."""
-    return rig.surface.vertices[palm_vertices(rig)].mean(axis=0)
+def palm_center(rig: Rig, model: HandModel | None = None) -> np.ndarray:
+    """(3,) centre of the palm surface at rest, hand frame (``model``: the rig's hand model
+    when already built)."""
+    return rig.surface.vertices[palm_vertices(rig, model)].mean(axis=0)
 
 
 class _Skinner:
@@ -46,6 +48,7 @@ class _Skinner:
         self.binding = self.kin.bind(SurfacePoints.from_vertices(vertex_ids, rig.surface.faces))
 
     def __call__(self, q):
+        """(P, 3) the points at ``q`` (D,) or at a :class:`~retarget_core.rig.kinematics.Pose`."""
         return self.kin.points(q, self.binding)
 
 
@@ -94,14 +97,17 @@ def place_palm(rig: Rig, q: np.ndarray, approach: np.ndarray, obstacles: list[Sd
 
 
 def close_fingers(rig: Rig, q: np.ndarray, obstacles: list[Sdf], *, fingers: list[str] | None = None,
-                  press: float = 0.0004, steps: int = 60, max_curl: float = 1.0) -> tuple[np.ndarray, dict]:
+                  press: float = 0.0004, steps: int = 60, max_curl: float = 1.0,
+                  model: HandModel | None = None) -> tuple[np.ndarray, dict]:
     """Close the named fingers (default: all) from q until their links touch an obstacle,
     pressing in by ``press`` metres (soft finger pads). Returns (q, {finger: [touching link
-    indices]}). A link that touches stops its joint and the joints before it."""
+    indices]}). A link that touches stops its joint and the joints before it. ``model``: the
+    rig's hand model when already built (a grasp search closes the fingers many times)."""
     q = np.array(q, dtype=np.float64)
     upper = rig.upper
     touching: dict[str, list[int]] = {}
-    for finger in hand_fingers(rig):
+    kin = rig.kinematics()
+    for finger in hand_fingers(rig, model):
         if fingers is not None and finger.name not in fingers:
             continue
         links = [_Skinner(rig, ids) if len(ids) else None for ids in finger.link_vertices]
@@ -109,9 +115,10 @@ def close_fingers(rig: Rig, q: np.ndarray, obstacles: list[Sdf], *, fingers: lis
         touched: list[int] = []
 
         def link_gaps(qq):
-            # Only links at or after the first still-moving joint can change.
+            # Only links at or after the first still-moving joint can change; one pose for all
             first = active.index(True)
-            return [(_min_sdf(s(qq), obstacles) + press) if (s is not None and k >= first) else np.inf
+            pose = kin.pose(qq)
+            return [(_min_sdf(s(pose), obstacles) + press) if (s is not None and k >= first) else np.inf
                     for k, s in enumerate(links)]
 
         start = q.copy()
