@@ -6,7 +6,8 @@
 #   core:    every other test
 # The run lasts as long as its longest lane, so the split keeps them about even. With the
 # Blender tests after the core lane (CI of b77d0f2): service 907 s, core 1348 + 169 s, 1786 s
-# in all; split as here (6de4fb5): service 1114 + 193 s, core 1266 s, 1391 s in all.
+# in all; split as here (6de4fb5): service 1114 + 193 s, core 1266 s, 1391 s in all; at 9a2cecc
+# (clean clone, nothing else running): service 934 + 142 s, core 1001 s, 18 min 58 s with set-up.
 # Each lane has its own pytest base temp; both logs are printed when both are done, and the
 # suite fails when either lane fails or collects nothing (pytest exits 5 then).
 # Usage (what `make test` runs): tests/run_lanes.sh VENV_BIN BLENDER_VENV_BIN
