@@ -168,3 +168,8 @@ def test_a_demo_clip_asked_again_is_an_independent_copy():
     np.testing.assert_array_equal(again.contact_labels, kept)
     assert (kept > 0).any() and np.abs(again.hand_vertices).max() < 1.0
     assert again is not first and again.hand_vertices is not first.hand_vertices
+    # another rig under the same name (the surface moved 1 cm) is another clip, not the kept one
+    moved = source_rig(0.006)
+    moved.surface.vertices = moved.surface.vertices + np.array([0.01, 0.0, 0.0])
+    other = make_demo_clip("box_pinch", time_scale=0.05, resolution=0.006, rig=moved)
+    assert moved.name == rig.name and not np.array_equal(other.hand_vertices, again.hand_vertices)

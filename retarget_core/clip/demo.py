@@ -459,7 +459,11 @@ def make_demo_clip(name: str, *, time_scale: float = 1.0, resolution: float = SO
     (tests); at 1 every clip has 600 to 1200 frames at 120 fps. ``rig`` must be the source rig
     at ``resolution`` when given (it saves rebuilding it)."""
     rig = rig or source_rig(resolution)
-    key = (name, float(time_scale), float(resolution), rig.name, rig.surface.n_vertices, rig.n_dofs)
+    from ..inputs import content_sha256  # here: inputs reads clips
+
+    # keyed on the rig's content, not its name: another rig with the same name is another clip
+    key = (name, float(time_scale), float(resolution),
+           content_sha256((rig.surface.vertices, rig.surface.faces, rig.dof_names, rig.rest_pose, rig.lower, rig.upper)))
     clip = _GENERATED.get(key)
     if clip is None:
         obj, timeline = build_demo_timeline(name, time_scale=time_scale, rig=rig)
