@@ -10,8 +10,8 @@ Every builder is a pure function ``(rig, truth, ...) -> (rig, truth)`` returning
 What a hand model must recover is in :class:`Truth`: which joints form which finger, the palm
 joint, the handedness and, per joint, the world direction of the palmar side of its segment.
 The disguises never change what the hand IS (its skeleton geometry and surface), only how it
-is written down (names, joint order, bone rolls, world placement, mirror image, bind pose,
-extra metacarpal joints, DOFs), except :func:`drop_fingers` which rebuilds a hand with fewer
+is written down (names, joint order, bone rolls, where a hinge sits on its axis, world
+placement, mirror image, bind pose, extra metacarpal joints, DOFs), except :func:`drop_fingers` which rebuilds a hand with fewer
 fingers and :func:`strip_dofs` which removes every DOF but the free root's.
 
 Conventions (see ``retarget_core.rig.model``): joint local = rest_local @ A_1(q_1) @ ...,
@@ -355,6 +355,52 @@ def reroll(rig: Rig, truth: Truth, degrees: float, joints=None) -> tuple[Rig, Tr
     t = truth.copy()
     t.steps.append(f"reroll({degrees})")
     return out, t
+
+
+def slide_hinges(rig: Rig, truth: Truth, offsets: dict[str, float]) -> tuple[Rig, Truth]:
+    """Each named joint (one rotate DOF) moved ``offsets[name]`` metres along its own hinge
+    axis without changing the kinematics, as a robot file places a joint wherever on its motor's
+    axis the maker chose (the LEAP hand's sit 4-15 mm to the side of the finger's middle):
+    rest_local' = rest_local T(s a), each child's rest_local' = T(-s a) rest_local. A rotation
+    about a fixes a, so every posed joint frame below and every posed surface are unchanged."""
+    slide = {}
+    for name, s in offsets.items():
+        j = rig.joint_index(name)
+        dofs = [d for d in rig.dofs if d.joint == j]
+        if len(dofs) != 1 or dofs[0].kind != "rotate":
+            raise ValueError(f"{name}: slide_hinges needs a joint with one rotate DOF")
+        slide[j] = float(s) * np.asarray(dofs[0].axis, float)
+    joints = []
+    for i, j in enumerate(rig.joints):
+        local = np.array(j.rest_local, float)
+        if i in slide:
+            local = local @ rigid(translation=slide[i])
+        if j.parent in slide:
+            local = rigid(translation=-slide[j.parent]) @ local
+        joints.append(Joint(j.name, j.parent, local))
+    out = _new_rig(rig, joints, [_copy_dof(d) for d in rig.dofs], _copy_mesh(rig.surface), step="slide_hinges")
+    t = truth.copy()
+    t.steps.append("slide_hinges")
+    return out, t
+
+
+def hinge_offsets(rig, offset: float = 0.009) -> dict[str, float]:
+    """Every joint of ``rig`` with one rotate DOF whose axis runs across its bone (more than
+    60 degrees from the direction to its first child; a roll about the bone is left out: its
+    place along the axis is where the bone starts), slid ``offset`` metres, alternating in sign."""
+    world = rig.kinematics().bind_world
+    out = {}
+    for i, j in enumerate(rig.joints):
+        dofs = [d for d in rig.dofs if d.joint == i]
+        if i == 0 or [d.kind for d in dofs] != ["rotate"]:
+            continue
+        kids = [k for k, c in enumerate(rig.joints) if c.parent == i]
+        if kids:
+            bone = _unit(world[kids[0]][:3, 3] - world[i][:3, 3])
+            if abs(float(bone @ (world[i][:3, :3] @ dofs[0].axis))) > 0.5:
+                continue
+        out[j.name] = offset * (-1) ** len(out)
+    return out
 
 
 # ---- 3. move --------------------------------------------------------------------------------------

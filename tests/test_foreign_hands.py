@@ -7,7 +7,7 @@ import pytest
 from retarget_core.mesh.geometry import signed_volume
 from tests.foreign_hands import (
     FINGERS, curl_at_rest, drop_fingers, foreign_demo, insert_metacarpals, mirror, move, posed_vertices, rename,
-    reroll, rigid, rot_x, rot_y, rot_z, rotate_thumb_at_rest, strip_dofs, truth_of, variant_q,
+    reroll, rigid, rot_x, rot_y, rot_z, rotate_thumb_at_rest, hinge_offsets, slide_hinges, strip_dofs, truth_of, variant_q,
 )
 from retarget_core.rig.demo_hands import DEMO_HANDS
 
@@ -129,6 +129,23 @@ def test_reroll_chosen_joints(hands):
     assert changed == ["index2", "index3"]
     q = _q(rig, 4)
     assert np.allclose(posed_vertices(out, q), posed_vertices(rig, q), atol=ATOL)
+
+
+# ---- 2b. hinges slid along their axes ----------------------------------------------------------
+@pytest.mark.parametrize("name", ["robot4", "prosthetic_2dof"])
+def test_slide_hinges_keeps_kinematics(hands, name):
+    rig, truth = hands[name]
+    offsets = hinge_offsets(rig)
+    assert len(offsets) >= 10
+    out, t = slide_hinges(rig, truth, offsets)
+    _check_truth(out, t)
+    moved = out.kinematics().bind_world[:, :3, 3] - rig.kinematics().bind_world[:, :3, 3]
+    for joint, s in offsets.items():
+        # the joint really moved, along its own axis
+        assert np.linalg.norm(moved[rig.joint_index(joint)]) == pytest.approx(abs(s), abs=1e-12)
+    for seed in (2, 3):
+        q = _q(rig, seed)
+        assert np.allclose(posed_vertices(out, q), posed_vertices(rig, q), atol=ATOL)
 
 
 # ---- 3. move ------------------------------------------------------------------------------------

@@ -23,7 +23,9 @@ from foreign_hands import (
     rot_x,
     rot_y,
     rot_z,
+    hinge_offsets,
     rotate_thumb_at_rest,
+    slide_hinges,
 )
 from retarget_core.errors import InputError
 from retarget_core.rig.anatomy import source_markers
@@ -183,6 +185,23 @@ def test_the_source_markers_follow_the_hand_not_its_names(canonical, variants):
     p = np.einsum("pk,pkd->pd", bary, rig0.surface.vertices[rig.surface.faces[faces]])
     assert names == names0 and len(names) == 25
     assert np.max(np.linalg.norm(p - p0, axis=1)) <= SAME_POINT_M
+
+
+@pytest.mark.parametrize("name", ["robot4", "prosthetic_2dof"])
+def test_where_a_hinge_sits_on_its_axis_changes_no_proposal(source, name):
+    """A robot file puts each hinge wherever on its motor's axis the maker chose (the LEAP
+    hand's finger hinges sit 4-15 mm to the side of the finger's middle): the same hand with
+    every hinge slid 9 mm along its axis, alternating sides, gets the same axial curves,
+    lambdas and markers, and the same finger lengths. (Read at the joints as written, the
+    curves' anchors moved 9 mm and the fingertips 3-4 mm on robot4.)"""
+    rig0, truth = foreign_demo(name, RES)
+    rig, _ = slide_hinges(rig0, truth, hinge_offsets(rig0))
+    vertices0 = rig0.surface.vertices
+    reference = _sites(propose(source, rig0).annotations, rig0, vertices0)
+    other = _sites(propose(source, rig).annotations, rig, vertices0)
+    assert _compare(reference, other, f"{name} with its hinges slid", tolerance=1e-6) <= 1e-6
+    m0, m = hand_model(rig0), hand_model(rig)
+    assert [f.length for f in m.fingers] == pytest.approx([f.length for f in m0.fingers], abs=1e-9)
 
 
 # ---- what the model cannot tell -----------------------------------------------------------------

@@ -6,7 +6,8 @@ Everything is measured on the rig at its bind pose, in world coordinates (metres
 - the palm joint: the lowest common ancestor of the finger chains (a forearm, a mount or a
   camera stand above it, and surface owned by them, are not the hand);
 - each finger chain, its articulations (joints at the same place, such as a robot knuckle's
-  abduction and flexion links, are one articulation), its knuckle (leading joints that run
+  abduction and flexion links, are one articulation; a one-DOF hinge is read on the finger's
+  middle, wherever on its axis the file put it: :func:`hinge_centred_positions`), its knuckle (leading joints that run
   inside the palm, such as metacarpals, are found by ray casting between neighbouring chains:
   a finger starts where the surface separates it from its neighbour) and its tip;
 - the thumb: the chain that points away from the others (opposition), or for two chains the one
@@ -386,6 +387,65 @@ def _chain_geometry(joints: list[int], positions, weights, vertices, scale, mesh
     return _Chain(joints, groups, points, np.array(tip, dtype=np.float64), tip_vertex, owned)
 
 
+#: A hinge whose axis is within 60 degrees of its bone (a roll about the bone) is left where it is:
+#: its place along the axis is where the bone starts.
+ROLL_AXIS_COS = 0.5
+
+
+def hinge_centred_positions(rig: Rig, world: np.ndarray, owner: np.ndarray) -> np.ndarray:
+    """(J, 3) m: each joint's bind position, a hinge (one rotate DOF across its bone) moved
+    along its own axis to the middle of the skin its link owns around the middle half of its
+    bone (``owner`` (V,): each vertex's joint; the bone runs to the first child joint away
+    from it, or to a leaf's skin centre).
+
+    Where on its axis a hinge sits changes nothing in the kinematics, and robot files place it
+    where the motor is: the LEAP hand's finger hinges sit 4-15 mm to the side of the finger's
+    middle. Read as they are, the finger's bones, its palmar midline and its tip lean to that
+    side, and the axial curves, markers and contacts with them. A skinned human hand's joints
+    have two or three DOFs (none is moved on the demo human hands)."""
+    bind = np.asarray(world[:, :3, 3], dtype=np.float64)
+    positions = bind.copy()
+    children: list[list[int]] = [[] for _ in range(rig.n_joints)]
+    for j, joint in enumerate(rig.joints):
+        if joint.parent >= 0:
+            children[joint.parent].append(j)
+    # children first: a bone runs to its child's moved position, so where the child sat on its
+    # own axis does not tilt it
+    for j in range(rig.n_joints - 1, 0, -1):
+        dofs = [d for d in rig.dofs if d.joint == j]
+        if len(dofs) != 1 or dofs[0].kind != "rotate":
+            continue
+        link = rig.surface.vertices[owner == j]
+        if len(link) < 3:
+            continue
+        axis = world[j][:3, :3] @ np.asarray(dofs[0].axis, dtype=np.float64)
+        axis /= np.linalg.norm(axis)
+        # first the middle of all its skin along the axis: the bone from there to the child
+        # (or to the skin's centre) tells a hinge across the bone from a roll about it
+        along = (link - bind[j]) @ axis
+        rough = bind[j] + axis * 0.5 * (along.min() + along.max())
+        ends = [positions[c] - rough for c in children[j]]
+        ends = [e for e in ends if np.linalg.norm(e) > 1e-9] or [link.mean(axis=0) - rough]
+        raw = ends[0]
+        if abs(float(raw @ axis)) > ROLL_AXIS_COS * float(np.linalg.norm(raw)):
+            continue
+        # the bone across the axis (the same wherever on its axis the hinge sits), and the skin
+        # around its middle half: skin blended toward the neighbours at either joint would pull
+        # the middle toward them
+        bone = raw - (raw @ axis) * axis
+        length = float(np.linalg.norm(bone))
+        bone /= length
+        t = (link - bind[j]) @ bone
+        if not children[j]:
+            length = float(t.max())
+        middle = link[(t >= 0.25 * length) & (t <= 0.75 * length)]
+        if len(middle) < 3:
+            continue
+        along = (middle - bind[j]) @ axis
+        positions[j] = bind[j] + axis * 0.5 * (along.min() + along.max())
+    return positions
+
+
 def hand_model(rig: Rig, mapping: HandMapping | None = None) -> HandModel:
     """The hand model of ``rig`` (see the module docstring); ``mapping`` settles what detection
     cannot. Raises InputError when the rig is not a hand the model can read."""
@@ -395,10 +455,10 @@ def hand_model(rig: Rig, mapping: HandMapping | None = None) -> HandModel:
     notes: list[str] = []
     n = rig.n_joints
     world = rig.kinematics().bind_world
-    positions = world[:, :3, 3]
     vertices = rig.surface.vertices
     weights = rig.surface.dense_weights(n)
     owner = weights.argmax(axis=1)
+    positions = hinge_centred_positions(rig, world, owner)
     scale = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
     parents = [j.parent for j in rig.joints]
     children: list[list[int]] = [[] for _ in range(n)]
