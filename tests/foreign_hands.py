@@ -360,7 +360,7 @@ def reroll(rig: Rig, truth: Truth, degrees: float, joints=None) -> tuple[Rig, Tr
 def slide_hinges(rig: Rig, truth: Truth, offsets: dict[str, float]) -> tuple[Rig, Truth]:
     """Each named joint (one rotate DOF) moved ``offsets[name]`` metres along its own hinge
     axis without changing the kinematics, as a robot file places a joint wherever on its motor's
-    axis the maker chose (the LEAP hand's sit 4-15 mm to the side of the finger's middle):
+    axis the maker chose (the LEAP hand's sit 11-15 mm to the side of the finger's middle):
     rest_local' = rest_local T(s a), each child's rest_local' = T(-s a) rest_local. A rotation
     about a fixes a, so every posed joint frame below and every posed surface are unchanged."""
     slide = {}

@@ -190,7 +190,7 @@ def test_the_source_markers_follow_the_hand_not_its_names(canonical, variants):
 @pytest.mark.parametrize("name", ["robot4", "prosthetic_2dof"])
 def test_where_a_hinge_sits_on_its_axis_changes_no_proposal(source, name):
     """A robot file puts each hinge wherever on its motor's axis the maker chose (the LEAP
-    hand's finger hinges sit 4-15 mm to the side of the finger's middle): the same hand with
+    hand's finger hinges sit 11-15 mm to the side of the finger's middle): the same hand with
     every hinge slid 9 mm along its axis, alternating sides, gets the same axial curves,
     lambdas and markers, and the same finger lengths. (Read at the joints as written, the
     curves' anchors moved 9 mm and the fingertips 3-4 mm on robot4.)"""

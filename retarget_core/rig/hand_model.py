@@ -399,7 +399,7 @@ def hinge_centred_positions(rig: Rig, world: np.ndarray, owner: np.ndarray) -> n
     from it, or to a leaf's skin centre).
 
     Where on its axis a hinge sits changes nothing in the kinematics, and robot files place it
-    where the motor is: the LEAP hand's finger hinges sit 4-15 mm to the side of the finger's
+    where the motor is: the LEAP hand's finger hinges sit 11-15 mm to the side of the finger's
     middle. Read as they are, the finger's bones, its palmar midline and its tip lean to that
     side, and the axial curves, markers and contacts with them. A skinned human hand's joints
     have two or three DOFs (none is moved on the demo human hands)."""
