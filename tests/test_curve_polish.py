@@ -148,3 +148,35 @@ def test_polish_towards_the_solved_frames_stops_when_it_is_as_good_or_gains_litt
         assert cut.converged and cut.accepted == stop + 1
         assert cut.objective_after == kept[stop]
         assert cut.objective_solved == reference
+
+
+def test_the_small_gain_stop_waits_until_the_curve_is_near_the_solved_frames(solved_demo):
+    """With ``stall_within``, a step that closes little of the gap stops the polish only once
+    the curve scores within that share above the solved frames' objective: with every step
+    counted small (tolerance 1), the run is the tolerance-free one cut at its first kept step
+    within that share; a share no kept step reaches runs every iteration; a huge share stops as
+    without it (after the first step)."""
+    problem, _, q = solved_demo
+    rig = problem.rig
+    curves, times = _curves(problem, q)
+    with Executor(workers=1).frame_runner(problem) as runner:
+        _, free = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, solved=q)
+        kept, current = [], free.objective_before
+        for value in free.history:
+            if value < current:
+                kept.append(value)
+                current = value
+        reference = free.objective_solved
+        ratios = np.array(kept) / reference
+        assert len(kept) >= 4 and np.all(ratios > 1.0)  # every kept step is still above the frames
+        within = float(0.5 * (ratios[1] + ratios[2])) - 1.0  # reached first by the third kept step
+        _, cut = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, tolerance=1.0,
+                               solved=q, stall_within=within)
+        assert cut.converged and cut.accepted == 3 and cut.objective_after == kept[2]
+        _, runs = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, tolerance=1.0,
+                                solved=q, stall_within=0.5 * (float(ratios[-1]) - 1.0))
+        assert runs.accepted == len(kept) and runs.objective_after == kept[-1]
+        _, huge = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, tolerance=1.0,
+                                solved=q, stall_within=1e9)
+        _, plain = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, tolerance=1.0, solved=q)
+        assert huge.converged and huge.accepted == plain.accepted == 1 and huge.objective_after == kept[0]

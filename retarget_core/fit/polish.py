@@ -96,7 +96,7 @@ class CoefficientLayout:
 
 def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: np.ndarray, upper: np.ndarray,
                   *, iterations: int = 4, tolerance: float = 0.0, patience: int = 1, coupling=None,
-                  solved: np.ndarray | None = None) -> tuple[list[BSplineCurve], PolishReport]:
+                  solved: np.ndarray | None = None, stall_within: float = 0.0) -> tuple[list[BSplineCurve], PolishReport]:
     """``curves`` (one per DOF) with coefficients polished on the frames' objective at
     ``times`` (T,) (see the module docstring); ``runner`` a FrameRunner of the run's problem.
     ``lower``, ``upper`` (D,) the DOF limits. ``solved`` (T, D): the solved frames the curves
@@ -104,7 +104,10 @@ def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: 
     ``iterations`` steps; it stops earlier once the curve scores no worse than the solved
     frames, or when ``patience`` kept steps in a row each closed less than ``tolerance`` of the
     remaining gap to them (without ``solved``: lowered the objective by less than ``tolerance``
-    of its value; 0: every iteration runs while steps are kept). ``coupling``: the rig's
+    of its value; 0: every iteration runs while steps are kept). ``stall_within`` > 0 (with
+    ``solved``): that small-gain stop waits until the curve scores within this share above the
+    solved frames' objective; further off, the steps go on while they are kept (a polish that
+    slows down far from the frames is not done). ``coupling``: the rig's
     :class:`~retarget_core.rig.coupling.DofCoupling`, kept exactly: the frames' systems are
     carried to the free DOFs and each follower's curve is its leader's, mapped
     (:func:`~retarget_core.fit.splines.coupled_curves`)."""
@@ -204,7 +207,8 @@ def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: 
         if not improved:
             break
         small = small + 1 if gain < tolerance else 0
-        if small >= max(1, int(patience)):
+        near = solved is None or stall_within <= 0 or current <= (1.0 + stall_within) * reference
+        if small >= max(1, int(patience)) and near:
             report.converged = True
             break
         systems = frame_systems(coeffs)
