@@ -11,8 +11,9 @@ What a hand model must recover is in :class:`Truth`: which joints form which fin
 joint, the handedness and, per joint, the world direction of the palmar side of its segment.
 The disguises never change what the hand IS (its skeleton geometry and surface), only how it
 is written down (names, joint order, bone rolls, where a hinge sits on its axis, world
-placement, mirror image, bind pose, extra metacarpal joints, DOFs), except :func:`drop_fingers` which rebuilds a hand with fewer
-fingers and :func:`strip_dofs` which removes every DOF but the free root's.
+placement, mirror image, bind pose, extra metacarpal joints, DOFs), except :func:`drop_fingers`
+which rebuilds a hand with fewer fingers and :func:`strip_dofs` which removes every DOF but the
+free root's.
 
 Conventions (see ``retarget_core.rig.model``): joint local = rest_local @ A_1(q_1) @ ...,
 world G_j = G_parent @ local_j, surfaces authored at the bind pose q = rest. The free root

@@ -7,9 +7,10 @@ Everything is measured on the rig at its bind pose, in world coordinates (metres
   camera stand above it, and surface owned by them, are not the hand);
 - each finger chain, its articulations (joints at the same place, such as a robot knuckle's
   abduction and flexion links, are one articulation; a one-DOF hinge is read on the finger's
-  middle, wherever on its axis the file put it: :func:`hinge_centred_positions`), its knuckle (leading joints that run
-  inside the palm, such as metacarpals, are found by ray casting between neighbouring chains:
-  a finger starts where the surface separates it from its neighbour) and its tip;
+  middle, wherever on its axis the file put it: :func:`hinge_centred_positions`), its knuckle
+  (leading joints that run inside the palm, such as metacarpals, are found by ray casting
+  between neighbouring chains: a finger starts where the surface separates it from its
+  neighbour) and its tip;
 - the thumb: the chain that points away from the others (opposition), or for two chains the one
   whose base is nearer the wrist;
 - the palm frame: the wrist point (proximal end of the palm surface), forward (wrist to the
