@@ -155,7 +155,7 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
                                                    iterations=config.fit.polish_iterations,
                                                    tolerance=config.fit.polish_tolerance,
                                                    patience=config.fit.polish_patience, coupling=coupling,
-                                                   solved=q, stall_within=config.fit.polish_stall_within)
+                                                   solved=q, within=config.fit.polish_within)
                     fit_report["polish"] = polish.to_dict()
                     timings["curve polish"] = polish.seconds
     finally:

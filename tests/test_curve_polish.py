@@ -98,18 +98,19 @@ def test_polish_stops_at_the_first_step_that_gains_less_than_the_tolerance(solve
         assert cut.objective_after == kept[stop]
         _, one = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, tolerance=1.0)
         assert one.converged and one.accepted == 1 and one.objective_after == kept[0]
-        # with patience, only that many small steps in a row stop it (every step is small here)
+        # with patience the last that many kept steps are judged together (every pair gains
+        # less than the whole objective here)
         _, two = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, tolerance=1.0, patience=2)
         assert two.converged and two.accepted == 2 and two.objective_after == kept[1]
-        # a small step followed by a large one does not stop it: the run goes on past the first
-        # small step until `patience` small ones come in a row
-        stop2 = next((i for i in range(1, len(gains)) if gains[i] < tolerance and gains[i - 1] < tolerance), None)
-        _, cut2 = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, tolerance=tolerance,
+        # a small step next to a large one does not stop it: the run goes on until two kept
+        # steps together lowered the objective by less than the tolerance of its value before them
+        values = np.r_[free.objective_before, kept]
+        pair = (values[:-2] - values[2:]) / values[:-2]  # pair[i]: kept steps i and i + 1 together
+        tolerance2 = float(np.median(pair))
+        stop2 = int(np.flatnonzero(pair < tolerance2)[0]) + 1  # the later step of the first such pair
+        _, cut2 = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, tolerance=tolerance2,
                                 patience=2)
-        if stop2 is None:
-            assert not cut2.converged and cut2.accepted == len(kept)
-        else:
-            assert cut2.converged and cut2.accepted == stop2 + 1 and cut2.objective_after == kept[stop2]
+        assert cut2.converged and cut2.accepted == stop2 + 1 and cut2.objective_after == kept[stop2]
 
 
 def test_polish_towards_the_solved_frames_stops_when_it_is_as_good_or_gains_little_of_the_gap(solved_demo):
@@ -150,12 +151,10 @@ def test_polish_towards_the_solved_frames_stops_when_it_is_as_good_or_gains_litt
         assert cut.objective_solved == reference
 
 
-def test_the_small_gain_stop_waits_until_the_curve_is_near_the_solved_frames(solved_demo):
-    """With ``stall_within``, a step that closes little of the gap stops the polish only once
-    the curve scores within that share above the solved frames' objective: with every step
-    counted small (tolerance 1), the run is the tolerance-free one cut at its first kept step
-    within that share; a share no kept step reaches runs every iteration; a huge share stops as
-    without it (after the first step)."""
+def test_the_polish_is_done_within_a_share_of_the_solved_frames_objective(solved_demo):
+    """With ``within``, the polish stops at its first kept step that scores within that share
+    above the solved frames' objective (the tolerance-free run cut there); a share no step
+    reaches runs every iteration; a share the fitted curve already meets takes no step."""
     problem, _, q = solved_demo
     rig = problem.rig
     curves, times = _curves(problem, q)
@@ -170,13 +169,42 @@ def test_the_small_gain_stop_waits_until_the_curve_is_near_the_solved_frames(sol
         ratios = np.array(kept) / reference
         assert len(kept) >= 4 and np.all(ratios > 1.0)  # every kept step is still above the frames
         within = float(0.5 * (ratios[1] + ratios[2])) - 1.0  # reached first by the third kept step
-        _, cut = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, tolerance=1.0,
-                               solved=q, stall_within=within)
+        _, cut = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, solved=q, within=within)
         assert cut.converged and cut.accepted == 3 and cut.objective_after == kept[2]
-        _, runs = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, tolerance=1.0,
-                                solved=q, stall_within=0.5 * (float(ratios[-1]) - 1.0))
+        _, runs = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, solved=q,
+                                within=0.5 * (float(ratios[-1]) - 1.0))
         assert runs.accepted == len(kept) and runs.objective_after == kept[-1]
-        _, huge = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, tolerance=1.0,
-                                solved=q, stall_within=1e9)
-        _, plain = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, tolerance=1.0, solved=q)
-        assert huge.converged and huge.accepted == plain.accepted == 1 and huge.objective_after == kept[0]
+        _, done = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, solved=q,
+                                within=free.objective_before / reference)
+        assert done.converged and done.accepted == 0 and done.objective_after == free.objective_before
+
+
+def test_a_window_of_kept_steps_is_judged_on_the_gap_it_closed_together(solved_demo):
+    """With the solved frames and ``patience`` W, the polish is the tolerance-free run cut at
+    its first kept step k (k >= W) whose last W steps together closed less than ``tolerance`` of
+    the gap to the solved frames' objective left before them; so a run of small steps followed
+    by a large one is not cut where step by step it would be."""
+    problem, _, q = solved_demo
+    rig = problem.rig
+    curves, times = _curves(problem, q)
+    with Executor(workers=1).frame_runner(problem) as runner:
+        _, free = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, solved=q)
+        kept, current = [], free.objective_before
+        for value in free.history:
+            if value < current:
+                kept.append(value)
+                current = value
+        reference = free.objective_solved
+        values = np.r_[free.objective_before, kept]
+        assert len(kept) >= 4 and values[-1] > reference
+        for window in (1, 3):
+            closed = (values[:-window] - values[window:]) / (values[:-window] - reference)
+            tolerance = float(np.median(closed))
+            stop = int(np.flatnonzero(closed < tolerance)[0]) + window - 1  # index into kept
+            _, cut = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, solved=q,
+                                   tolerance=tolerance, patience=window)
+            assert cut.converged and cut.accepted == stop + 1 and cut.objective_after == kept[stop], window
+        # a window longer than the run never judges: every step is kept
+        _, long = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, solved=q,
+                                tolerance=1.0, patience=len(kept) + 1)
+        assert long.accepted == len(kept) and not long.converged

@@ -11,7 +11,9 @@ touches only degree + 1 coefficients per DOF; the table's hinge enters the syste
 square-root residuals, since nothing settles it after the polish). A step is kept only when
 the summed *full* objective at the frames goes down, so the polish never makes the delivered
 curve score worse; it works towards the solved frames' summed objective and stops once the
-curve scores as well, or a step closes little of the gap left. Coefficients stay within the
+curve scores about as well, or its last few kept steps together closed little of the gap left
+(progress comes in bursts: small steps while the damping settles, then large ones).
+Coefficients stay within the
 DOF limits (a B-spline lies in the convex hull of its coefficients, so the curve does too)."""
 
 from __future__ import annotations
@@ -96,18 +98,16 @@ class CoefficientLayout:
 
 def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: np.ndarray, upper: np.ndarray,
                   *, iterations: int = 4, tolerance: float = 0.0, patience: int = 1, coupling=None,
-                  solved: np.ndarray | None = None, stall_within: float = 0.0) -> tuple[list[BSplineCurve], PolishReport]:
+                  solved: np.ndarray | None = None, within: float = 0.0) -> tuple[list[BSplineCurve], PolishReport]:
     """``curves`` (one per DOF) with coefficients polished on the frames' objective at
     ``times`` (T,) (see the module docstring); ``runner`` a FrameRunner of the run's problem.
     ``lower``, ``upper`` (D,) the DOF limits. ``solved`` (T, D): the solved frames the curves
     were fitted to; their summed objective is what the polish works towards. At most
-    ``iterations`` steps; it stops earlier once the curve scores no worse than the solved
-    frames, or when ``patience`` kept steps in a row each closed less than ``tolerance`` of the
-    remaining gap to them (without ``solved``: lowered the objective by less than ``tolerance``
-    of its value; 0: every iteration runs while steps are kept). ``stall_within`` > 0 (with
-    ``solved``): that small-gain stop waits until the curve scores within this share above the
-    solved frames' objective; further off, the steps go on while they are kept (a polish that
-    slows down far from the frames is not done). ``coupling``: the rig's
+    ``iterations`` steps; it stops earlier once the curve scores within ``within`` (a share,
+    0: at or below) of the solved frames' objective, or when its last ``patience`` kept steps
+    together closed less than ``tolerance`` of the gap to that objective left before them
+    (without ``solved``: lowered the objective by less than ``tolerance`` of its value then;
+    0: every iteration runs while steps are kept). ``coupling``: the rig's
     :class:`~retarget_core.rig.coupling.DofCoupling`, kept exactly: the frames' systems are
     carried to the free DOFs and each follower's curve is its leader's, mapped
     (:func:`~retarget_core.fit.splines.coupled_curves`)."""
@@ -146,17 +146,17 @@ def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: 
         return float(sum(v for _, v in runner.values(frames, poses(c))))
 
     mu = 1e-3
-    small = 0  # kept steps in a row that closed less than the tolerance
     systems = frame_systems(coeffs)
     current = total(coeffs)
     report.objective_before = current
+    kept = [current]  # the summed objective before the polish, then after each kept step
     reference = 0.0
     if solved is not None:
         reference = float(sum(v for _, v in runner.values(frames, np.asarray(solved, dtype=np.float64))))
         report.objective_solved = reference
     for it in range(max(0, int(iterations))):
-        if solved is not None and current <= reference:
-            report.converged = True  # as good as the frames it was fitted to
+        if solved is not None and current <= (1.0 + max(0.0, within)) * reference:
+            report.converged = True  # (about) as good as the frames it was fitted to
             break
         runner.executor.report("curve polish", it, int(iterations))
         report.iterations += 1
@@ -194,11 +194,6 @@ def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: 
             value = total(trial)
             report.history.append(value)
             if np.isfinite(value) and value < current:
-                # the share of what was left to gain: towards the solved frames' objective when
-                # known (a relative gain of the whole objective stalls early where most of it is
-                # what no pose removes, e.g. markers a hand of other proportions cannot meet)
-                gap = current - reference
-                gain = (current - value) / gap if gap > 0 else 0.0
                 coeffs, current, improved = trial, value, True
                 mu = max(mu / 3.0, 1e-9)
                 report.accepted += 1
@@ -206,11 +201,18 @@ def polish_curves(runner, curves: list[BSplineCurve], times: np.ndarray, lower: 
             mu *= 4.0
         if not improved:
             break
-        small = small + 1 if gain < tolerance else 0
-        near = solved is None or stall_within <= 0 or current <= (1.0 + stall_within) * reference
-        if small >= max(1, int(patience)) and near:
-            report.converged = True
-            break
+        kept.append(current)
+        window = max(1, int(patience))
+        if tolerance > 0 and len(kept) > window:
+            # the share of what was left to gain before the window that it closed: towards the
+            # solved frames' objective when known (a relative gain of the whole objective stalls
+            # early where most of it is what no pose removes, e.g. markers a hand of other
+            # proportions cannot meet)
+            start = kept[-1 - window]
+            gap = start - reference
+            if gap <= 0 or start - current < tolerance * gap:
+                report.converged = True
+                break
         systems = frame_systems(coeffs)
     runner.executor.report("curve polish", int(iterations), int(iterations))
     report.objective_after = current
