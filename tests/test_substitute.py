@@ -6,12 +6,15 @@ import io
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial.transform import Rotation
 
 from retarget_core.cli import main
 from retarget_core.clip import load_clip
 from retarget_core.clip.demo import make_demo_clip, source_rig
+from retarget_core.clip.objects import make_object
 from retarget_core.clip.substitute import substitute_object, trace_onto
 from retarget_core.errors import InputError
+from retarget_core.mesh.registration import register_surface, surface_moments
 from retarget_core.pairing import pair_contacts
 
 
@@ -43,7 +46,7 @@ def test_substituting_the_same_object_keeps_every_label(clip):
 
 def test_a_wider_object_gets_the_contacts_and_pairs_with_the_hand(clip):
     wide = clip.object_vertices * [1.1, 1.1, 1.0]
-    new, report = substitute_object(clip, wide, clip.object_faces, name="wide bottle")
+    new, report = substitute_object(clip, wide, clip.object_faces, name="wide bottle", allow_intersection=True)
     assert report["dropped"] == 0 and new.object_name == "wide bottle"
     frames = (clip.contact_labels > 0).any(axis=1)
     assert np.array_equal((new.contact_labels > 0).any(axis=1), frames)
@@ -75,4 +78,107 @@ def test_cli_substitute_writes_a_valid_clip(clip, tmp_path):
     assert code == 0
     new = load_clip(tmp_path / "n.npz")
     assert new.object_name == "bottle" and (new.contact_labels > 0).any()
-    assert "traced" in out.getvalue()
+    assert "traced" in out.getvalue() and "registered the new object" in out.getvalue()
+
+
+def _turned(vertices, seed):
+    """``vertices`` re-centred at their surface centroid (as a scan comes), turned by a random
+    rotation and moved; and that rigid motion (4, 4)."""
+    rotation = Rotation.random(random_state=seed).as_matrix()
+    m = np.eye(4)
+    m[:3, :3] = rotation
+    m[:3, 3] = [0.31, -0.17, 0.08]
+    return vertices @ rotation.T + m[:3, 3], m
+
+
+def _scan_like(vertices, faces, edge=0.005, seed=0):
+    """The demo object as a scan comes: decimated to about ``edge`` metre edges with
+    fast-simplification, centred at its centre of mass, turned."""
+    import fast_simplification
+
+    mean_edge = np.linalg.norm(vertices[faces[:, 0]] - vertices[faces[:, 1]], axis=1).mean()
+    reduction = float(np.clip(1.0 - (mean_edge / edge) ** 2, 0.0, 0.95))
+    v, f = fast_simplification.simplify(vertices, faces, target_reduction=reduction)
+    v = v - trimesh.Trimesh(v, f, process=False).center_mass
+    turned, _ = _turned(v, seed)
+    return turned, np.asarray(f, dtype=np.int64)
+
+
+@pytest.mark.parametrize("name", ["mug", "hammer", "bottle"])
+def test_registration_undoes_a_turn_and_a_move(name):
+    """A demo object turned by a random rotation and moved is placed back onto itself: the
+    surfaces meet to 1 um; the mug (no symmetry) to the vertex, symmetric objects up to their
+    symmetry (any such placement is the same surface)."""
+    obj = make_object(name, 0.004)
+    centroid, _ = surface_moments(obj.vertices, obj.faces)
+    moved, m = _turned(obj.vertices - centroid, seed=11)
+    fit = register_surface(obj.vertices, obj.faces, moved, obj.faces)
+    assert fit.surface_rms < 1e-6 and fit.rms < 1e-6
+    back = fit.apply(moved)
+    if name == "mug":
+        assert np.abs(back - obj.vertices).max() < 1e-6
+    np.testing.assert_allclose(fit.transform[:3, :3] @ fit.transform[:3, :3].T, np.eye(3), atol=1e-9)
+    assert np.linalg.det(fit.transform[:3, :3]) > 0  # a rotation, never a mirror image
+
+
+def test_a_scan_like_object_is_registered_and_keeps_the_contacts(clip):
+    """The clip's bottle as a scan (decimated to 5 mm edges, centred at its centre of mass,
+    turned): as given, no contact reaches it and the substitution is refused naming the share;
+    registered, >= 95 % of the contacts carry over with an RMS residual under 2 mm, and the
+    reported transform is the one that places it."""
+    scan, faces = _scan_like(clip.object_vertices, clip.object_faces)
+    assert len(faces) < 0.7 * len(clip.object_faces)
+    with pytest.raises(InputError, match=r"only \d+\.\d % of the contacts"):
+        substitute_object(clip, scan, faces, name="scan")
+    new, report = substitute_object(clip, scan, faces, name="scan", register=True)
+    assert report["share"] >= 0.95 and report["residual_mm"] < 2.0
+    m = np.array(report["transform"])
+    np.testing.assert_allclose(new.object_vertices, scan @ m[:3, :3].T + m[:3, 3], atol=1e-12)
+    # the placed scan lies on the original surface
+    closest, distance, _ = trimesh.proximity.closest_point(
+        trimesh.Trimesh(clip.object_vertices, clip.object_faces, process=False), new.object_vertices)
+    assert np.median(distance) < 1e-3
+    frames = (clip.contact_labels > 0).any(axis=1)
+    assert np.array_equal((new.contact_labels > 0).any(axis=1), frames)
+
+
+def test_a_new_object_that_cuts_through_the_hand_is_refused_with_its_frames(clip):
+    """A bottle 30 % wider in the same place puts the captured fingers inside it: refused,
+    naming the frames; with allow_intersection it is written and the depths are reported."""
+    wide = clip.object_vertices * [1.3, 1.3, 1.0]
+    with pytest.raises(InputError, match=r"inside the new object in \d+ of 46 frames \(frames \d+") as err:
+        substitute_object(clip, wide, clip.object_faces, transform=np.eye(4))
+    new, report = substitute_object(clip, wide, clip.object_faces, transform=np.eye(4), allow_intersection=True)
+    depth = np.array(report["hand_depth_mm"])
+    deep = np.flatnonzero(depth > 2.0)
+    assert len(deep) and f"in {len(deep)} of 46 frames" in str(err.value)
+    assert ", ".join(str(f) for f in deep[:3]) in str(err.value)
+    # the same object in the same place: the hand touches it but is not inside it
+    _, same = substitute_object(clip, clip.object_vertices, clip.object_faces, transform=np.eye(4))
+    assert max(same["hand_depth_mm"]) < 2.0
+
+
+def test_cli_substitute_places_refuses_and_explains(clip, tmp_path):
+    """The CLI registers a scan by default and prints the residual and the transform;
+    --transform identity takes it as given (refused: the share); a bad --transform is a usage
+    error, as is mixing it with --rotate."""
+    clip.save(tmp_path / "c.npz")
+    scan, faces = _scan_like(clip.object_vertices, clip.object_faces, seed=5)
+    trimesh.Trimesh(scan, faces, process=False).export(tmp_path / "scan.ply")
+
+    def run(*extra):
+        out, err = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            code = main(["clip", "substitute", str(tmp_path / "c.npz"), "--object", str(tmp_path / "scan.ply"),
+                         "--out", str(tmp_path / "n.npz"), *extra])
+        return code, out.getvalue(), err.getvalue()
+
+    code, out, _ = run()
+    assert code == 0 and "RMS" in out and "placement" in out and (tmp_path / "n.npz").exists()
+    (tmp_path / "n.npz").unlink()
+    code, _, err = run("--transform", "identity")
+    assert code == 2 and "% of the contacts" in err and not (tmp_path / "n.npz").exists()
+    code, _, err = run("--transform", "1,0,0")
+    assert code == 2 and "--transform" in err
+    code, _, err = run("--rotate", "0,0,0", "--transform", "identity")
+    assert code == 2 and "not both" in err

@@ -32,6 +32,14 @@ def add_commands(sub) -> None:
     c_sub.add_argument("--object", required=True, help="a mesh file (OBJ, PLY, STL, ...) or demo:NAME")
     c_sub.add_argument("--scale", help="scale the new object: S or SX,SY,SZ (in its own frame)")
     c_sub.add_argument("--max-distance", type=float, default=0.02, help="metres a contact may be traced (0.02)")
+    c_sub.add_argument("--transform", help="place the new object by this 4x4 matrix (16 numbers, row by row, "
+                                           "metres; or 'identity': as given) instead of registering it")
+    c_sub.add_argument("--translate", help="place it by X,Y,Z metres (after --rotate) instead of registering it")
+    c_sub.add_argument("--rotate", help="place it by RX,RY,RZ degrees (XYZ Euler angles) instead of registering it")
+    c_sub.add_argument("--min-share", type=float, default=0.8,
+                       help="refuse when a smaller share of the contacts reaches the new object (0.8)")
+    c_sub.add_argument("--allow-intersection", action="store_true",
+                       help="write the clip even when the source hand lies inside the new object")
     c_sub.add_argument("--out", required=True, help="the new clip .npz")
     c_sub.set_defaults(func=_cmd_clip_substitute)
     c_pair = clip_sub.add_parser("pair", help="dense contact pairing: report paired and discarded contacts")
@@ -145,12 +153,61 @@ def _cmd_clip_substitute(args) -> int:
         if len(scale) not in (1, 3) or min(scale) <= 0:
             raise _UsageError(f"--scale must be one or three positive numbers, got {args.scale!r}")
         vertices = np.asarray(vertices, dtype=float) * np.array(scale if len(scale) == 3 else scale * 3)
-    new, report = substitute_object(clip, vertices, faces, name=name, max_distance=args.max_distance)
-    new.save(args.out)
+    transform = _placement(args)
+    new, report = substitute_object(clip, vertices, faces, name=name, max_distance=args.max_distance,
+                                    register=transform is None, transform=transform, min_share=args.min_share,
+                                    allow_intersection=args.allow_intersection)
+    if "residual_mm" in report:
+        print(f"registered the new object onto {clip.object_name}: RMS {report['residual_mm']:.2f} mm over the "
+              f"{report['labelled_vertices']} contact-region vertices ({report['surface_residual_mm']:.2f} mm over "
+              "its whole surface)")
+    print("placement (new object -> old object's frame, metres):")
+    for row in report["transform"]:
+        print("  " + " ".join(f"{x:10.6f}" for x in row))
+    depth = max(report["hand_depth_mm"], default=0.0)
+    if depth > 0:
+        print(f"the source hand goes up to {depth:.2f} mm into the new object")
     print(f"{args.clip}: object {clip.object_name} -> {new.object_name}; labelled vertices {report['labelled_vertices']}, "
-          f"traced {report['traced']}, dropped {report['dropped']} (farther than {args.max_distance * 100:g} cm)")
+          f"traced {report['traced']} ({100 * report['share']:.1f} %), dropped {report['dropped']} "
+          f"(farther than {args.max_distance * 100:g} cm)")
+    new.save(args.out)
     print(f"wrote {args.out}")
     return 0
+
+
+def _placement(args):
+    """The 4x4 placing the new object from --transform / --translate / --rotate; None:
+    register it."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    if args.transform and (args.translate or args.rotate):
+        raise _UsageError("give --transform or --translate/--rotate, not both")
+    if args.transform:
+        if args.transform.strip().lower() == "identity":
+            return np.eye(4)
+        values = _numbers(args.transform, 16, "--transform")
+        return np.array(values).reshape(4, 4)
+    if not (args.translate or args.rotate):
+        return None
+    m = np.eye(4)
+    if args.rotate:
+        m[:3, :3] = Rotation.from_euler("xyz", _numbers(args.rotate, 3, "--rotate"), degrees=True).as_matrix()
+    if args.translate:
+        m[:3, 3] = _numbers(args.translate, 3, "--translate")
+    return m
+
+
+def _numbers(text: str, count: int, flag: str) -> list[float]:
+    import numpy as np
+
+    try:
+        values = [float(x) for x in text.replace(",", " ").split()]
+    except ValueError:
+        raise _UsageError(f"{flag} takes {count} numbers, got {text!r}") from None
+    if len(values) != count or not all(np.isfinite(values)):
+        raise _UsageError(f"{flag} takes {count} finite numbers, got {text!r}")
+    return values
 
 
 def _cmd_clip_pair(args) -> int:
