@@ -57,7 +57,11 @@ def test_a_wider_object_gets_the_contacts_and_pairs_with_the_hand(clip):
 def test_bad_new_objects_are_named(clip, tmp_path):
     box = trimesh.creation.box([0.05, 0.05, 0.2])
     with pytest.raises(InputError, match="closed manifold"):
-        substitute_object(clip, box.vertices, box.faces[:-1])
+        substitute_object(clip, box.vertices, box.faces[:-1], repair=False)
+    # two boxes side by side: not a stray piece, refused rather than one of them kept
+    two = np.concatenate([box.vertices, box.vertices + [0.1, 0, 0]])
+    with pytest.raises(InputError, match="2 separate pieces"):
+        substitute_object(clip, two, np.concatenate([box.faces, box.faces + 8]))
     with pytest.raises(InputError, match="finite"):
         substitute_object(clip, np.full((8, 3), np.nan), box.faces)
     clip.save(tmp_path / "c.npz")
@@ -182,3 +186,28 @@ def test_cli_substitute_places_refuses_and_explains(clip, tmp_path):
     assert code == 2 and "--transform" in err
     code, _, err = run("--rotate", "0,0,0", "--transform", "identity")
     assert code == 2 and "not both" in err
+
+
+def test_a_scan_with_a_hole_and_a_stray_piece_is_repaired_and_registered(clip):
+    """The scan-like bottle with a hole cut in its side (away from the grasp), a stray speck
+    beside it and its triangles written unwelded (STL-style): welded, the speck dropped, the
+    hole closed, then registered as before; the repairs are listed."""
+    scan, faces = _scan_like(clip.object_vertices, clip.object_faces, seed=2)
+    centroid = scan.mean(axis=0)
+    # a hole: the faces around the scan's lowest vertex (the bottle's base, no contact there)
+    down = Rotation.random(random_state=2).as_matrix() @ [0.0, 0.0, -1.0]  # the bottle's base, turned
+    low = scan[np.argmax(scan @ down)]
+    cut = np.linalg.norm(scan[faces].mean(axis=1) - low, axis=1) < 0.01
+    assert 3 <= cut.sum() < 0.05 * len(faces)
+    holed = faces[~cut]
+    speck = trimesh.creation.icosphere(subdivisions=1, radius=0.002)
+    v = np.concatenate([scan, speck.vertices + centroid + [0.2, 0, 0]])
+    f = np.concatenate([holed, speck.faces + len(scan)])
+    soup_v = v[f].reshape(-1, 3)  # every triangle with its own three vertices
+    soup_f = np.arange(len(soup_v)).reshape(-1, 3)
+    new, report = substitute_object(clip, soup_v, soup_f, name="holed scan", register=True)
+    text = "; ".join(report["repairs"])
+    assert "welded" in text and "1 stray piece" in text and "closed 1 hole" in text, text
+    assert report["share"] >= 0.95 and report["residual_mm"] < 2.0
+    with pytest.raises(InputError, match="closed manifold"):
+        substitute_object(clip, soup_v, soup_f, register=True, repair=False)

@@ -157,6 +157,8 @@ def _cmd_clip_substitute(args) -> int:
     new, report = substitute_object(clip, vertices, faces, name=name, max_distance=args.max_distance,
                                     register=transform is None, transform=transform, min_share=args.min_share,
                                     allow_intersection=args.allow_intersection)
+    for line in report["repairs"]:
+        print(f"repaired the new object: {line}")
     if "residual_mm" in report:
         print(f"registered the new object onto {clip.object_name}: RMS {report['residual_mm']:.2f} mm over the "
               f"{report['labelled_vertices']} contact-region vertices ({report['surface_residual_mm']:.2f} mm over "

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..mesh.geometry import vertex_normals
+from ..mesh.repair import repair_closed_surface
 from ..mesh.topology import check_closed_manifold
 from .format import Clip
 
@@ -74,8 +75,8 @@ def hand_depth_per_frame(clip: Clip, vertices: np.ndarray, faces: np.ndarray) ->
 def substitute_object(clip: Clip, new_vertices: np.ndarray, new_faces: np.ndarray, *, name: str = "",
                       max_distance: float = DEFAULT_MAX_DISTANCE, register: bool = False,
                       transform: np.ndarray | None = None, min_share: float = DEFAULT_MIN_SHARE,
-                      allow_intersection: bool = False,
-                      max_hand_depth: float = DEFAULT_MAX_HAND_DEPTH) -> tuple[Clip, dict]:
+                      allow_intersection: bool = False, max_hand_depth: float = DEFAULT_MAX_HAND_DEPTH,
+                      repair: bool = True) -> tuple[Clip, dict]:
     """A copy of ``clip`` with the object (Vn, 3) m / (Fn, 3) replacing the original, its
     per-frame contact labels (T, Vn) traced from the original's; and a report: labelled
     original vertices, how many were traced, dropped (no new surface within ``max_distance``),
@@ -83,7 +84,10 @@ def substitute_object(clip: Clip, new_vertices: np.ndarray, new_faces: np.ndarra
     fit's RMS residual (mm) over the contact region and the whole surface, and the source
     hand's depth inside the new object per frame (mm).
 
-    Placement: ``transform`` (4, 4) maps the new object's coordinates into the old object's
+    ``repair``: a new surface that is not one closed object is repaired where that cannot
+    change its shape (:func:`~retarget_core.mesh.repair.repair_closed_surface`: welded, stray
+    pieces dropped, holes closed; listed in the report's ``repairs``) or refused with the
+    reason; without it, refused. Placement: ``transform`` (4, 4) maps the new object's coordinates into the old object's
     frame; else ``register`` fits it (:func:`~retarget_core.mesh.registration.register_surface`
     on the old contact region); else it is taken as given. Refused with an :class:`InputError`
     naming the figure: a share below ``min_share``, or (unless ``allow_intersection``) the
@@ -95,11 +99,14 @@ def substitute_object(clip: Clip, new_vertices: np.ndarray, new_faces: np.ndarra
         raise InputError("the new object's vertices must be a finite (V, 3) array", element="object vertices")
     if new_faces.ndim != 2 or new_faces.shape[1] != 3 or new_faces.min() < 0 or new_faces.max() >= len(new_vertices):
         raise InputError("the new object's faces must be (F, 3) indices into its vertices", element="object faces")
+    repairs = []
+    if repair:
+        new_vertices, new_faces, repairs = repair_closed_surface(new_vertices, new_faces)
     topo = check_closed_manifold(new_faces, len(new_vertices))
     if not (topo.closed and topo.manifold):
         raise InputError(f"the new object is not a closed manifold surface: {topo.describe()}", element="object mesh")
     labelled = np.nonzero((clip.contact_labels > 0).any(axis=0))[0]
-    report = {}
+    report = {"repairs": repairs}
     if transform is not None:
         transform = np.asarray(transform, dtype=np.float64)
         if transform.shape != (4, 4) or not np.all(np.isfinite(transform)) or \
