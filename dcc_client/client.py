@@ -108,6 +108,11 @@ class RetargetClient:
         return self._json("POST", "/v1/clips/import-grab",
                           {"sequence": sequence, "mano": mano, "object_mesh": object_mesh, **optional})
 
+    def substitute_object(self, clip: str, object_mesh: str, **optional) -> dict:
+        """A new clip asset: ``clip`` with its object replaced by the mesh asset ``object_mesh``
+        (optional: transform (16 numbers), min_share, allow_intersection, name)."""
+        return self._json("POST", "/v1/clips/substitute", {"clip": clip, "object_mesh": object_mesh, **optional})
+
     def propose_annotations(self, target_rig: str, source_rig: str | None = None) -> dict:
         """The core's proposed annotations for ``target_rig``, stored as an annotations asset."""
         return self._json("POST", "/v1/annotations/propose", {"target_rig": target_rig, "source_rig": source_rig})

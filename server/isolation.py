@@ -79,6 +79,19 @@ def import_grab_isolated(paths: dict, out: Path, *, scratch: Path, memory_bytes:
                       scratch=scratch, memory_bytes=memory_bytes, interval=interval, what="GRAB import")
 
 
+def substitute_isolated(clip: Path, mesh: Path, mesh_name: str, out: Path, options: dict, *, scratch: Path,
+                        memory_bytes: int, interval: float = 0.05) -> dict:
+    """:func:`retarget_core.clip.substitute.substitute_object` of the stored ``clip`` with the
+    uploaded ``mesh`` in a child process limited to ``memory_bytes`` (the mesh is untrusted):
+    the new clip is saved at ``out``; returns {"info": its clip info, "report": the
+    substitution's report}. ``options``: register / transform / min_share /
+    allow_intersection. Raises as :func:`validate_isolated` (a refused substitution as
+    :class:`server.assets.UploadError`, with the core's message)."""
+    return _run_child({"task": "substitute", "clip": str(Path(clip).resolve()), "mesh": str(Path(mesh).resolve()),
+                       "mesh_name": mesh_name, "out": str(Path(out).resolve()), "options": options},
+                      scratch=scratch, memory_bytes=memory_bytes, interval=interval, what="object substitution")
+
+
 def _run_child(request_doc: dict, *, scratch: Path, memory_bytes: int, interval: float, what: str) -> dict:
     """Run ``python -m server.isolation`` on ``request_doc`` under the memory limit; its answer."""
     from .assets import UploadError
@@ -142,6 +155,8 @@ def _child(request_path: str, answer_path: str) -> int:
     try:
         if req["task"] == "grab":
             answer = _grab(req)
+        elif req["task"] == "substitute":
+            answer = _substitute(req)
         else:
             answer = _validate(req)
     except UploadError as err:
@@ -206,6 +221,34 @@ def _grab(req: dict) -> dict:
         raise UploadError(f"cannot build the MANO source rig: {err}") from err
     return {"info": clip_info(load_clip(clip_path)), "rig_path": str(rig_path),
             "rig_info": rig_info(load_rig(rig_path))}
+
+
+def _substitute(req: dict) -> dict:
+    import numpy as np
+
+    from retarget_core.clip import load_clip
+    from retarget_core.clip.substitute import substitute_object
+    from retarget_core.errors import InputError
+    from retarget_core.mesh.io import load_mesh_file
+
+    from .assets import UploadError, _without_path, clip_info
+
+    options = dict(req["options"])
+    if options.get("transform") is not None:
+        options["transform"] = np.asarray(options["transform"], dtype=np.float64).reshape(4, 4)
+    try:
+        clip = load_clip(req["clip"])
+        vertices, faces = load_mesh_file(req["mesh"], "the new object's", "object_mesh")
+        new, report = substitute_object(clip, vertices, faces, name=Path(req["mesh_name"]).stem, **options)
+        new.save(req["out"])
+    except InputError as err:  # the stored files' paths are the service's business, not the user's
+        text = str(err)
+        for stored in (req["mesh"], req["clip"]):
+            text = _without_path(text, Path(stored))
+        raise UploadError(text) from err
+    depth = report.pop("hand_depth_mm")
+    report["hand_depth_max_mm"] = max(depth, default=0.0)
+    return {"info": clip_info(new), "report": report}
 
 
 if __name__ == "__main__":

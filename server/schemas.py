@@ -70,6 +70,23 @@ class GrabImport(BaseModel):
     name: str = Field(default="grab_clip.npz", max_length=200)
 
 
+class SubstituteRequest(BaseModel):
+    """A clip asset with its object replaced by an uploaded mesh (a ``file`` asset)."""
+
+    model_config = ConfigDict(extra="forbid")
+    clip: str = Field(pattern=SHA256, description="the clip asset whose object is replaced")
+    object_mesh: str = Field(pattern=SHA256, description="the new object's mesh (.ply / .obj / .stl / .off)")
+    transform: list[float] | None = Field(
+        default=None, min_length=16, max_length=16,
+        description="4 x 4 row by row (metres) placing the new object in the old object's frame; "
+                    "default: registered onto the old object (its contact region)")
+    min_share: float = Field(default=0.8, ge=0.0, le=1.0,
+                             description="refuse when a smaller share of the contacts reaches the new object")
+    allow_intersection: bool = Field(default=False,
+                                     description="make the clip even when the source hand lies inside the new object")
+    name: str = Field(default="substituted_clip.npz", max_length=200)
+
+
 class ProposeRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
     target_rig: str = Field(pattern=SHA256)

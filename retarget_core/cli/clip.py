@@ -135,15 +135,9 @@ def _cmd_clip_substitute(args) -> int:
         obj = make_object(name)
         vertices, faces = obj.vertices, obj.faces
     else:
-        import trimesh
+        from ..mesh.io import load_mesh_file
 
-        from ..errors import InputError
-
-        try:
-            mesh = trimesh.load(args.object, force="mesh", process=False)
-        except Exception as exc:  # trimesh raises many kinds for unreadable files
-            raise InputError(f"not a readable mesh: {exc}", source=args.object) from None
-        vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+        vertices, faces = load_mesh_file(args.object, "the new object's", "object mesh")
         name = Path(args.object).stem
     if args.scale:
         try:

@@ -30,6 +30,7 @@ import numpy as np
 import numpy.lib.format as npformat
 
 from ..errors import InputError
+from ..mesh.io import load_mesh_file
 from ..mesh.surface_points import SurfacePoints
 from .format import RIGHT_HAND_CONTACT_CODES, Clip
 from .markers import MANO_MARKERS, MANO_N_VERTICES
@@ -625,20 +626,6 @@ def _resolve(explicit, stored, grab_root, what: str, src: str, element: str):
     return None
 
 
-def _load_mesh(path: Path, what: str, element: str):
-    import trimesh
-
-    try:
-        mesh = trimesh.load(str(path), process=False, force="mesh")
-    except Exception as err:
-        raise InputError(f"cannot read {what} mesh ({type(err).__name__}: {err})", source=str(path), element=element) from None
-    vertices = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), dtype=np.float64)
-    faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), dtype=np.int64)
-    if vertices.ndim != 2 or len(vertices) == 0 or not np.all(np.isfinite(vertices)):
-        raise InputError(f"{what} mesh has no usable vertices", source=str(path), element=element)
-    return vertices, faces
-
-
 def _grab_pose(orient: np.ndarray, transl: np.ndarray) -> np.ndarray:
     """GRAB object/table params -> (T, 4, 4) world-from-local (world = v @ R + t)."""
     rot = rodrigues(orient)
@@ -776,7 +763,7 @@ def import_grab_hand(sequence_path, mano_path, *, hand: str = "right", object_me
     vtemp_path = _resolve(vtemp, _get(seq, f"{hand_key}.vtemp", src, required=False), grab_root, "hand template (vtemp)", src, "vtemp")
     template = None
     if vtemp_path is not None:
-        template, _ = _load_mesh(vtemp_path, "hand template (vtemp)", "vtemp")
+        template, _ = load_mesh_file(vtemp_path, "hand template (vtemp)", "vtemp")
         if template.shape != (MANO_N_VERTICES, 3):
             raise InputError(f"hand template has {len(template)} vertices, expected {MANO_N_VERTICES} (a MANO mesh)",
                              source=str(vtemp_path), element="vtemp")
@@ -792,7 +779,7 @@ def import_grab_hand(sequence_path, mano_path, *, hand: str = "right", object_me
                                  v_template=template)
 
     # ---- object ----------------------------------------------------------------------------
-    obj_vertices, obj_faces = _load_mesh(obj_path, "object", "object_mesh")
+    obj_vertices, obj_faces = load_mesh_file(obj_path, "object", "object_mesh")
     if contact.shape[1] != len(obj_vertices):
         raise InputError(f"has {contact.shape[1]} vertices per frame but the object mesh {obj_path} has {len(obj_vertices)}",
                          source=src, element="contact.object")
@@ -809,7 +796,7 @@ def import_grab_hand(sequence_path, mano_path, *, hand: str = "right", object_me
     # ---- table -----------------------------------------------------------------------------
     table_pose = table_half = None
     if table_path is not None:
-        t_vertices, _ = _load_mesh(table_path, "table", "table_mesh")
+        t_vertices, _ = load_mesh_file(table_path, "table", "table_mesh")
         lo, hi = t_vertices.min(axis=0), t_vertices.max(axis=0)
         centre = (lo + hi) / 2
         table_half = np.maximum((hi - lo) / 2, 1e-4)

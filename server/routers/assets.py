@@ -14,9 +14,11 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 
 from ..assets import UploadError, annotations_info, stored_rig_options
-from ..isolation import MIB, MemoryLimitExceeded, ValidatorCrashed, import_grab_isolated, validate_isolated
+from ..isolation import (MIB, MemoryLimitExceeded, ValidatorCrashed, import_grab_isolated, substitute_isolated,
+                         validate_isolated)
 from ..deps import current_owner, decode_cursor, encode_cursor, get_settings, get_store, require_intact
-from ..schemas import DEFAULT_PAGE, MAX_PAGE, SHA256, Asset, AssetKind, AssetList, GrabImport, Problem, ProposeRequest
+from ..schemas import (DEFAULT_PAGE, MAX_PAGE, SHA256, Asset, AssetKind, AssetList, GrabImport, Problem, ProposeRequest,
+                       SubstituteRequest)
 from ..settings import Settings
 from ..storage import AssetRow, Store
 from ..zipcheck import check_zip
@@ -245,6 +247,43 @@ def import_grab(body: GrabImport, response: Response, owner: str = Depends(curre
         asset, created = _save_new_asset(store, owner, "clip", body.name,
                                          lambda p: shutil.move(str(scratch / "clip.npz"), str(p)),
                                          imported["info"] | {"imported_from": "grab", "source_rig_asset": rig_asset.sha256})
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    response.status_code = 201 if created else 200
+    return asset.public()
+
+
+@router.post("/clips/substitute", response_model=Asset, status_code=201, responses=ERRORS | BAD_BODY)
+def substitute(body: SubstituteRequest, response: Response, owner: str = Depends(current_owner),
+               store: Store = Depends(get_store), settings: Settings = Depends(get_settings)):
+    """A new clip asset: ``clip`` with its object replaced by the mesh ``object_mesh`` (placed
+    by registration onto the old object, or by ``transform``), the contacts traced onto it.
+    Refused with a 422 naming the figure when too few contacts reach the new object or the
+    source hand would lie inside it (the frames named); the asset's ``info.substitution`` has
+    the share carried over, the fit's residual, the transform used and any mesh repairs."""
+    clip = owned(store, owner, body.clip, "clip", "clip")
+    mesh = owned(store, owner, body.object_mesh, "file", "object_mesh")
+    if PurePath(mesh.path).suffix.lower() not in (".ply", ".obj", ".stl", ".off"):
+        raise HTTPException(422, f"object_mesh: asset {mesh.sha256} is a {PurePath(mesh.path).suffix} file, "
+                                 "not a mesh (.ply / .obj / .stl / .off)")
+    options = {"register": body.transform is None, "transform": body.transform, "min_share": body.min_share,
+               "allow_intersection": body.allow_intersection}
+    scratch = store.new_tmp(".d")
+    scratch.mkdir()
+    try:  # in a child process with the validation memory limit: the mesh is an upload
+        try:
+            made = substitute_isolated(store.asset_path(clip), store.asset_path(mesh), mesh.name,
+                                       scratch / "clip.npz", options, scratch=scratch,
+                                       memory_bytes=settings.validation_memory_mb * MIB)
+        except (UploadError, ValidatorCrashed) as err:
+            raise HTTPException(422, f"cannot substitute the object: {err}") from err
+        except MemoryLimitExceeded as err:
+            raise HTTPException(413, f"substituting the object {err}; the service refuses work that needs "
+                                     "more (--validation-memory-mb)") from err
+        info = made["info"] | {"substituted_from": clip.sha256, "object_mesh": mesh.sha256,
+                               "substitution": made["report"]}
+        asset, created = _save_new_asset(store, owner, "clip", body.name,
+                                         lambda p: shutil.move(str(scratch / "clip.npz"), str(p)), info)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     response.status_code = 201 if created else 200
