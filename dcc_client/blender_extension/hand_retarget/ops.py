@@ -394,11 +394,69 @@ class HAND_RETARGET_OT_submit(_Op, bpy.types.Operator):
 
     @staticmethod
     def upload_clip(client, s) -> str:
-        if s.clip_kind == 'NATIVE':
-            if not s.clip_path:
-                raise ValueError("choose a clip file")
-            return client.upload("clip", bpy.path.abspath(s.clip_path))["id"]
-        return import_grab(client, s)[0]
+        if s.use_substitute and s.substitute_clip_id:
+            if clip_asset(client, s) != s.substitute_from_clip_id:
+                raise ValueError("the clip changed since its object was substituted: substitute it again, or turn "
+                                 "'Substituted object' off")
+            return s.substitute_clip_id
+        return clip_asset(client, s)
+
+
+def clip_asset(client, s) -> str:
+    """The asset id of the scene's clip: the native file uploaded, or the GRAB files imported
+    (the same files give the same id)."""
+    if s.clip_kind == 'NATIVE':
+        if not s.clip_path:
+            raise ValueError("choose a clip file")
+        return client.upload("clip", bpy.path.abspath(s.clip_path))["id"]
+    return import_grab(client, s)[0]
+
+
+class HAND_RETARGET_OT_substitute_object(_Op, bpy.types.Operator):
+    """Replace the clip's object with the selected mesh: the service registers it onto the clip's object and
+    traces the contacts onto it; Retarget then uses that clip"""
+    bl_idname = "hand_retarget.substitute_object"
+    bl_label = "Substitute Object"
+
+    def execute(self, context):
+        obj = context.active_object
+        if obj is None or obj.type != 'MESH' or any(m.type == 'ARMATURE' for m in obj.modifiers):
+            return self.fail("select the new object: a mesh that is not a skinned hand")
+        s = context.scene.hand_retarget
+        try:
+            client = jobs.make_client(context)
+            clip = clip_asset(client, s)
+            path = os.path.join(work_folder("objects"), f"{bpy.path.clean_name(obj.name)}.obj")
+            export_object_mesh(context, obj, path)
+            mesh = client.upload("file", path)
+            made = client.substitute_object(clip=clip, object_mesh=mesh["id"], allow_intersection=s.allow_intersection,
+                                            name=f"{bpy.path.clean_name(obj.name)}_clip.npz")
+        except ERRORS as err:
+            return self.fail(err)
+        sub = made["info"]["substitution"]
+        s.substitute_clip_id, s.substitute_from_clip_id, s.substitute_object = made["id"], clip, obj.name
+        s.use_substitute = True
+        s.substitute_report = (f"{100 * sub['share']:.0f} % of the contacts carried over"
+                               + (f", fit RMS {sub['residual_mm']:.2f} mm" if "residual_mm" in sub else ""))
+        for line in sub.get("repairs") or ():
+            self.report({'WARNING'}, f"the mesh was repaired: {line}")
+        self.report({'INFO'}, f"{obj.name}: {s.substitute_report}")
+        return {'FINISHED'}
+
+
+def export_object_mesh(context, obj, path: str) -> None:
+    """``obj`` as a triangulated OBJ in metres, in Blender's own axes (Z up): only the
+    geometry, modifiers applied (the service registers it onto the clip's object)."""
+    scale = context.scene.unit_settings.scale_length or 1.0
+    for other in context.selected_objects:
+        other.select_set(other == obj)
+    obj.select_set(True)
+    context.view_layer.objects.active = obj
+    result = bpy.ops.wm.obj_export(filepath=path, export_selected_objects=True, apply_modifiers=True,
+                                   export_triangulated_mesh=True, export_materials=False, export_uv=False,
+                                   export_normals=False, forward_axis='Y', up_axis='Z', global_scale=scale)
+    if 'FINISHED' not in result:
+        raise RuntimeError(f"could not export {obj.name!r} as OBJ")
 
 
 class HAND_RETARGET_OT_cancel(_Op, bpy.types.Operator):
@@ -537,5 +595,6 @@ CLASSES = (HAND_RETARGET_OT_ping, HAND_RETARGET_OT_add_root_bone, HAND_RETARGET_
            HAND_RETARGET_OT_propose_annotations, HAND_RETARGET_OT_load_annotations,
            HAND_RETARGET_OT_save_annotations, HAND_RETARGET_OT_curve_add, HAND_RETARGET_OT_curve_remove,
            HAND_RETARGET_OT_marker_at_cursor,
-           HAND_RETARGET_OT_curve_pick, HAND_RETARGET_OT_submit, HAND_RETARGET_OT_cancel,
+           HAND_RETARGET_OT_curve_pick, HAND_RETARGET_OT_submit, HAND_RETARGET_OT_substitute_object,
+           HAND_RETARGET_OT_cancel,
            HAND_RETARGET_OT_import_result)

@@ -105,6 +105,17 @@ class HR_SceneSettings(bpy.types.PropertyGroup):
     # what the service made of the GRAB files: the clip and its MANO source rig (asset ids)
     grab_clip_id: StringProperty(default="", options={'HIDDEN'})
     grab_source_rig_id: StringProperty(default="", options={'HIDDEN'})
+    # a substituted object (hand_retarget.substitute_object): the clip the service made with
+    # the selected mesh as its object, used by Retarget while "use_substitute" is on
+    use_substitute: BoolProperty(name="Substituted object", default=False,
+                                 description="Retarget the clip made with the substituted object")
+    substitute_clip_id: StringProperty(default="", options={'HIDDEN'})
+    substitute_object: StringProperty(name="New object", default="", options={'HIDDEN'})
+    substitute_from_clip_id: StringProperty(default="", options={'HIDDEN'})
+    substitute_report: StringProperty(default="", options={'HIDDEN'})
+    allow_intersection: BoolProperty(name="Allow intersection", default=False,
+                                     description="Substitute even when the captured hand lies inside the new object "
+                                                 "(a thicker object the solve should open the hand around)")
     source_rig_path: StringProperty(name="Source rig", subtype='FILE_PATH',
                                     description="USD of the hand the clip was captured with; empty: the clip's own "
                                                 "(a GRAB import's MANO hand, else the demo source hand)")

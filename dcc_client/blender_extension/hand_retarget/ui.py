@@ -101,6 +101,13 @@ class HAND_RETARGET_PT_panel(bpy.types.Panel):
             box.prop(s, "grab_mano")
             box.prop(s, "grab_object_mesh")
             box.prop(s, "grab_vtemp")
+        row = box.row(align=True)
+        row.operator("hand_retarget.substitute_object", icon='MESH_DATA')
+        row.prop(s, "allow_intersection", text="", icon='MOD_BOOLEAN')
+        if s.substitute_clip_id:
+            box.prop(s, "use_substitute", text=f"Object: {s.substitute_object}")
+            if s.substitute_report:
+                box.label(text=s.substitute_report)
         box.prop(s, "source_rig_path")
         row = box.row()
         row.prop(s, "preset")
