@@ -236,3 +236,56 @@ def test_fps_is_bounded(fps):
     with pytest.raises(InputError, match="frames per second") as err:
         clip.validate()
     assert err.value.element == "fps"
+
+
+# ---- version 2: contact surface points -------------------------------------------------------------
+def _with_surface_points(clip: Clip) -> Clip:
+    """``clip`` with contact surface points: frame 1 two points, frame 2 one, others none."""
+    clip.contact_offsets = np.array([0, 0, 2, 3] + [3] * (clip.n_frames - 3))
+    clip.contact_faces = np.array([0, 5, 7])
+    clip.contact_barycentric = np.array([[0.2, 0.3, 0.5], [1.0, 0.0, 0.0], [0.1, 0.1, 0.8]])
+    clip.contact_codes = np.array([22, 22, 45], dtype=np.uint8)
+    return clip
+
+
+def test_version_2_keeps_the_surface_points_and_version_1_still_reads(tmp_path):
+    clip = _with_surface_points(small_clip(6))
+    clip.save(tmp_path / "c.npz")
+    back = load_clip(tmp_path / "c.npz")
+    for name in ("contact_offsets", "contact_faces", "contact_barycentric", "contact_codes"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(clip, name))
+    with np.load(tmp_path / "c.npz") as data:
+        assert int(data["version"]) == 2
+    # a version-1 file (no surface points) as earlier builds wrote it
+    small_clip().save(tmp_path / "v1.npz")
+    _rewrite(tmp_path / "v1.npz", version=np.array(1))
+    old = load_clip(tmp_path / "v1.npz")
+    assert old.contact_offsets is None and old.contact_labels.any()
+
+
+def test_slice_keeps_each_frames_surface_points():
+    clip = _with_surface_points(small_clip(6))
+    part = clip.slice(2, 5)  # frames 2, 3, 4: only frame 2's point
+    part.validate()
+    np.testing.assert_array_equal(part.contact_offsets, [0, 1, 1, 1])
+    np.testing.assert_array_equal(part.contact_faces, [7])
+    np.testing.assert_array_equal(part.contact_codes, [45])
+    part = clip.slice(1, 2)
+    np.testing.assert_array_equal(part.contact_offsets, [0, 2])
+    np.testing.assert_array_equal(part.contact_faces, [0, 5])
+
+
+@pytest.mark.parametrize("field, value, text", [
+    ("contact_codes", None, "go together"),
+    ("contact_offsets", np.array([0, 0, 2, 3]), "T \\+ 1"),
+    ("contact_offsets", np.array([0, 2, 1, 3, 3, 3, 3]), "non-decreasing"),
+    ("contact_faces", np.array([0, 5, 999]), "face index out of range"),
+    ("contact_barycentric", np.array([[0.2, 0.3, 0.6], [1.0, 0, 0], [0.1, 0.1, 0.8]]), "sum to 1"),
+    ("contact_codes", np.array([22, 22, 7], dtype=np.uint8), "code 7"),
+    ("contact_faces", np.array([0, 5]), "N = contact_offsets"),
+])
+def test_bad_surface_points_are_named(field, value, text):
+    clip = _with_surface_points(small_clip(6))
+    setattr(clip, field, value)
+    with pytest.raises(InputError, match=text):
+        clip.validate()

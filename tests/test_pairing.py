@@ -289,3 +289,31 @@ def test_benchmark_runs_small():
     s = figures["summary"]
     assert s["paired"] > 0.5 * s["contacts"] and s["gap_max_mm"] <= 15.0
     assert figures["seconds"] > 0
+
+
+def test_contact_surface_points_pair_like_the_vertices_they_stand_for(clip_and_top, pairs):
+    """A format-2 clip whose contact surface points sit exactly on its labelled vertices (one
+    corner's weight 1) pairs exactly like the labels; moved inside their faces, the paired
+    object points follow them."""
+    import dataclasses
+
+    from retarget_core.mesh.surface_points import SurfacePoints
+
+    clip, _ = clip_and_top
+    rows = [np.flatnonzero(clip.contact_labels[f]) for f in range(clip.n_frames)]
+    ids = np.concatenate(rows)
+    sp = SurfacePoints.from_vertices(ids, clip.object_faces)
+    frame_of = np.repeat(np.arange(clip.n_frames), [len(r) for r in rows])
+    surface = dataclasses.replace(
+        clip, contact_offsets=np.concatenate([[0], np.cumsum([len(r) for r in rows])]),
+        contact_faces=sp.faces, contact_barycentric=sp.barycentric, contact_codes=clip.contact_labels[frame_of, ids])
+    surface.validate()
+    same = pair_contacts(surface)
+    for name in ("frame_offsets", "object_vertex", "object_face", "object_barycentric", "hand_face", "label",
+                 "n_contacts", "n_paired", "discarded_vertex"):
+        np.testing.assert_array_equal(getattr(same, name), getattr(pairs, name), err_msg=name)
+    np.testing.assert_allclose(same.hand_barycentric, pairs.hand_barycentric, atol=1e-12)
+    moved = dataclasses.replace(surface, contact_barycentric=np.full((len(ids), 3), 1 / 3))
+    off = pair_contacts(moved)
+    assert off.n_paired.sum() > 0
+    np.testing.assert_allclose(off.object_barycentric, 1 / 3)

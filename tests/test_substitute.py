@@ -28,12 +28,15 @@ def test_trace_onto_a_concentric_sphere_lands_straight_out():
     the new vertex nearest the radial hit; beyond max_distance nothing is found."""
     small = trimesh.creation.icosphere(subdivisions=3, radius=0.03)
     big = trimesh.creation.icosphere(subdivisions=4, radius=0.035)
-    hit = trace_onto(small.vertices, small.vertex_normals, big.vertices, big.faces, max_distance=0.01)
+    hit, face, bary = trace_onto(small.vertices, small.vertex_normals, big.vertices, big.faces, max_distance=0.01)
     assert np.all(hit >= 0)
     radial = small.vertices / np.linalg.norm(small.vertices, axis=1, keepdims=True) * 0.035
     assert np.linalg.norm(big.vertices[hit] - radial, axis=1).max() < 0.004  # within a mesh edge
-    assert np.all(trace_onto(small.vertices, small.vertex_normals, big.vertices, big.faces, max_distance=0.004) < 0)
-    inner = trace_onto(big.vertices, big.vertex_normals, small.vertices, small.faces, max_distance=0.01)
+    # the surface point itself is the radial hit, to the sphere's faceting (not a vertex away)
+    point = np.einsum("nk,nkd->nd", bary, big.vertices[big.faces[face]])
+    assert np.linalg.norm(point - radial, axis=1).max() < 3e-4
+    assert np.all(trace_onto(small.vertices, small.vertex_normals, big.vertices, big.faces, max_distance=0.004)[0] < 0)
+    inner = trace_onto(big.vertices, big.vertex_normals, small.vertices, small.faces, max_distance=0.01)[0]
     assert np.all(inner >= 0)  # inward when nothing is outward
 
 
@@ -232,3 +235,33 @@ def test_a_registered_scan_retargets_like_the_original_object(clip):
     error = {name: retarget(RunInputs.of(c, source, target, annotations), config).summary["contact_distance_median_mm"]
              for name, c in (("original", clip), ("scan", new))}
     assert np.isfinite(error["original"]) and abs(error["scan"] - error["original"]) < 1.0, error
+
+
+def test_substituted_contacts_are_the_traced_surface_points_not_vertices(clip, tmp_path):
+    """The substituted clip (format 2) keeps each traced contact where it landed: on the
+    registered scan, the points lie on the original bottle's surface (where its contacts
+    were) to well under the scan's 5 mm edges, while the nearest vertices are millimetres off;
+    the points survive saving, and pairing uses them."""
+    scan, faces = _scan_like(clip.object_vertices, clip.object_faces)
+    new, report = substitute_object(clip, scan, faces, register=True)
+    assert new.contact_offsets is not None and new.contact_offsets[-1] == len(new.contact_faces)
+    corners = new.object_faces[new.contact_faces]
+    points = np.einsum("nk,nkd->nd", new.contact_barycentric, new.object_vertices[corners])
+    nearest = new.object_vertices[corners[np.arange(len(corners)), np.argmax(new.contact_barycentric, axis=1)]]
+    original = trimesh.Trimesh(clip.object_vertices, clip.object_faces, process=False)
+    on_surface = trimesh.proximity.closest_point(original, points)[1]
+    snapped = trimesh.proximity.closest_point(original, nearest)[1]
+    # where the original contact vertices were: each point is within its trace of one
+    frame_of = np.repeat(np.arange(new.n_frames), np.diff(new.contact_offsets))
+    assert np.median(on_surface) < 0.3e-3 and np.median(np.linalg.norm(nearest - points, axis=1)) > 1e-3
+    assert np.median(snapped) >= np.median(on_surface)
+    assert np.array_equal(np.unique(frame_of), np.flatnonzero((clip.contact_labels > 0).any(axis=1)))
+    new.save(tmp_path / "v2.npz")
+    back = load_clip(tmp_path / "v2.npz")
+    np.testing.assert_array_equal(back.contact_offsets, new.contact_offsets)
+    np.testing.assert_allclose(back.contact_barycentric, new.contact_barycentric)
+    pairs = pair_contacts(back)
+    # pairing uses the surface points: the paired object points are those points
+    kept = np.flatnonzero(pairs.gap >= 0)
+    assert len(kept) > 0.8 * len(points)
+    assert set(map(tuple, np.round(pairs.object_barycentric, 9))) <= set(map(tuple, np.round(back.contact_barycentric, 9)))

@@ -2,13 +2,14 @@
 
 Stored as an ``.npz`` read with ``allow_pickle=False`` (so a clip file can never run code).
 Every array has a fixed name, dtype and shape; :meth:`Clip.validate` names the first bad field
-(and frame). Units: metres, seconds; world frame is Z-up. Version 1 fields:
+(and frame). Units: metres, seconds; world frame is Z-up. Version 2 (written since stop 53)
+adds the optional contact surface points; version 1 files (without them) still read. Fields:
 
 ==================== ============ ===============================================================
 field                shape        meaning
 ==================== ============ ===============================================================
 format               ()           the string "handretarget.clip"
-version              ()           1
+version              ()           2 (1: no contact surface points)
 fps                  ()           frames per second (float64), 1 to 10000
 hand_faces           (Fh, 3)      source hand triangles (int32)
 hand_vertices        (T, Vh, 3)   source hand vertices per frame, world (float32)
@@ -18,6 +19,13 @@ object_poses         (T, 4, 4)    rigid world-from-object transform per frame (f
 contact_labels       (T, Vo)      per-frame contact code of each object vertex, GRAB's
                                   convention: 0 = none, 22 = right palm, 41-55 = right fingers
                                   (uint8)
+contact_offsets      (T + 1,)     optional (version 2): frame f's contact surface points are rows
+                                  contact_offsets[f]:contact_offsets[f + 1] of the next three;
+                                  when present, pairing uses them instead of contact_labels
+                                  (which then mark each point's nearest vertex, for display)
+contact_faces        (N,)         ... object face of each point (int32)
+contact_barycentric  (N, 3)       ... its barycentric coordinates in that face (float64)
+contact_codes        (N,)         ... its contact code, as contact_labels (uint8)
 table_pose           (4, 4)       optional: world-from-table-box transform; the box is centred on
                                   its frame's origin, so its top is at +table_half_extents[2]
 table_half_extents   (3,)         optional, with table_pose
@@ -66,7 +74,9 @@ FPS_RANGE = (1.0, 10_000.0)
 MAX_CLIP_BYTES = 2 * 1024 ** 3
 #: Largest npy header read (numpy's own default).
 _MAX_HEADER = 10_000
-CLIP_VERSION = 1
+CLIP_VERSION = 2
+#: Versions :func:`load_clip` reads (1: without contact surface points).
+READABLE_VERSIONS = (1, 2)
 
 #: GRAB's right-hand contact codes (22 = palm/hand, 41-55 = the 15 finger segments).
 RIGHT_HAND_CONTACT_CODES = frozenset([22, *range(41, 56)])
@@ -83,6 +93,10 @@ class Clip:
     object_faces: np.ndarray
     object_poses: np.ndarray
     contact_labels: np.ndarray
+    contact_offsets: np.ndarray | None = None
+    contact_faces: np.ndarray | None = None
+    contact_barycentric: np.ndarray | None = None
+    contact_codes: np.ndarray | None = None
     table_pose: np.ndarray | None = None
     table_half_extents: np.ndarray | None = None
     marker_names: list[str] = field(default_factory=list)
@@ -131,6 +145,12 @@ class Clip:
         for name in ("hand_vertices", "object_poses", "contact_labels", "dof_values"):
             if sub[name] is not None:
                 sub[name] = sub[name][start:stop]
+        if self.contact_offsets is not None:
+            start, stop, _ = slice(start, stop).indices(self.n_frames)
+            lo, hi = int(self.contact_offsets[start]), int(self.contact_offsets[max(start, stop)])
+            sub["contact_offsets"] = self.contact_offsets[start:max(start, stop) + 1] - lo
+            for name in ("contact_faces", "contact_barycentric", "contact_codes"):
+                sub[name] = getattr(self, name)[lo:hi]
         return Clip(**sub)
 
     # ---- validation --------------------------------------------------------------------------
@@ -181,6 +201,27 @@ class Clip:
         if unknown:
             frame = int(np.nonzero(np.isin(labels, unknown).any(axis=1))[0][0])
             bad("contact_labels", f"frame {frame}: code {unknown[0]} is not a right-hand contact code (0, 22, 41-55)")
+
+        surface = (self.contact_offsets, self.contact_faces, self.contact_barycentric, self.contact_codes)
+        if any(a is not None for a in surface):
+            off, cf, cb, cc = (np.asarray(a) if a is not None else None for a in surface)
+            if any(a is None for a in (off, cf, cb, cc)):
+                bad("contact_offsets", "contact_offsets, contact_faces, contact_barycentric and contact_codes go together")
+            if off.shape != (n_frames + 1,) or not np.issubdtype(off.dtype, np.integer) or off[0] != 0 \
+                    or np.any(np.diff(off) < 0):
+                bad("contact_offsets", f"must be (T + 1 = {n_frames + 1},) non-decreasing integers from 0, "
+                                       f"got shape {off.shape}")
+            n = int(off[-1])
+            if cf.shape != (n,) or cb.shape != (n, 3) or cc.shape != (n,):
+                bad("contact_faces", f"contact_faces (N,), contact_barycentric (N, 3) and contact_codes (N,) must "
+                                     f"have N = contact_offsets[-1] = {n} rows")
+            if n and (cf.min() < 0 or cf.max() >= len(self.object_faces)):
+                bad("contact_faces", f"face index out of range [0, {len(self.object_faces)})")
+            if n and (not np.all(np.isfinite(cb)) or np.abs(cb.sum(axis=1) - 1).max() > 1e-6 or cb.min() < -1e-6):
+                bad("contact_barycentric", "rows must be non-negative and sum to 1")
+            odd = [int(c) for c in np.unique(cc) if int(c) not in RIGHT_HAND_CONTACT_CODES]
+            if odd:
+                bad("contact_codes", f"code {odd[0]} is not a right-hand contact code (22, 41-55)")
 
         if self.hand not in ("", "right", "left"):
             bad("hand", f"must be 'right' or 'left', got {self.hand!r}")
@@ -239,6 +280,11 @@ class Clip:
             "motion": np.array(self.motion),
             "source": np.array(self.source),
         }
+        if self.contact_offsets is not None:
+            arrays["contact_offsets"] = np.asarray(self.contact_offsets, dtype=np.int64)
+            arrays["contact_faces"] = np.asarray(self.contact_faces, dtype=np.int32)
+            arrays["contact_barycentric"] = np.asarray(self.contact_barycentric, dtype=np.float64)
+            arrays["contact_codes"] = np.asarray(self.contact_codes, dtype=np.uint8)
         if self.table_pose is not None:
             arrays["table_pose"] = np.asarray(self.table_pose, dtype=np.float64)
             arrays["table_half_extents"] = np.asarray(self.table_half_extents, dtype=np.float64)
@@ -262,6 +308,8 @@ _FIELD_SPECS = {
     "format": (0, "U"), "version": (0, "iu"), "fps": (0, "iuf"),
     "hand_faces": (None, "iu"), "hand_vertices": (None, "iuf"), "object_vertices": (None, "iuf"),
     "object_faces": (None, "iu"), "object_poses": (None, "iuf"), "contact_labels": (None, "biu"),
+    "contact_offsets": (1, "iu"), "contact_faces": (1, "iu"), "contact_barycentric": (2, "iuf"),
+    "contact_codes": (1, "biu"),
     "table_pose": (None, "iuf"), "table_half_extents": (None, "iuf"),
     "marker_names": (1, "U"), "marker_faces": (None, "iu"), "marker_barycentric": (None, "iuf"),
     "dof_names": (1, "U"), "dof_values": (None, "iuf"),
@@ -362,8 +410,9 @@ def load_clip(path, *, validate: bool = True, max_bytes: int = MAX_CLIP_BYTES) -
         if fmt != CLIP_FORMAT:
             raise InputError(f"not a Hand Retarget clip (format {fmt!r})", source=src, element="format")
         version = int(get("version"))
-        if version != CLIP_VERSION:
-            raise InputError(f"clip version {version} is not supported (this build reads {CLIP_VERSION})", source=src, element="version")
+        if version not in READABLE_VERSIONS:
+            raise InputError(f"clip version {version} is not supported (this build reads "
+                             f"{', '.join(map(str, READABLE_VERSIONS))})", source=src, element="version")
 
         def has(key):
             return key in present
@@ -379,6 +428,10 @@ def load_clip(path, *, validate: bool = True, max_bytes: int = MAX_CLIP_BYTES) -
             object_faces=get("object_faces").astype(np.int64),
             object_poses=get("object_poses").astype(np.float64),
             contact_labels=get("contact_labels"),
+            contact_offsets=get("contact_offsets").astype(np.int64) if has("contact_offsets") else None,
+            contact_faces=get("contact_faces").astype(np.int64) if has("contact_faces") else None,
+            contact_barycentric=get("contact_barycentric").astype(np.float64) if has("contact_barycentric") else None,
+            contact_codes=get("contact_codes") if has("contact_codes") else None,
             table_pose=get("table_pose") if has("table_pose") else None,
             table_half_extents=get("table_half_extents") if has("table_half_extents") else None,
             marker_names=[str(s) for s in get("marker_names")] if has("marker_names") else [],

@@ -31,15 +31,20 @@ DEFAULT_MAX_HAND_DEPTH = 0.002
 
 
 def trace_onto(vertices: np.ndarray, normals: np.ndarray, new_vertices: np.ndarray, new_faces: np.ndarray,
-               max_distance: float = DEFAULT_MAX_DISTANCE) -> np.ndarray:
-    """For each point (N, 3) with normal (N, 3) (object frame, metres), the index (N,) of the
-    new mesh's vertex nearest to where the ray along +normal (else -normal) first meets the
-    new surface within ``max_distance``; -1 where neither ray does."""
+               max_distance: float = DEFAULT_MAX_DISTANCE) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each point (N, 3) with normal (N, 3) (object frame, metres), where the ray along
+    +normal (else -normal) first meets the new surface within ``max_distance``: the new mesh's
+    vertex nearest to it (N,), its face (N,) and barycentric coordinates (N, 3) there (the
+    point itself, not snapped); -1 (and zeros) where neither ray does."""
     import trimesh
+
+    from ..mesh.surface_points import barycentric_of
 
     mesh = trimesh.Trimesh(new_vertices, new_faces, process=False)
     best_t = np.full(len(vertices), np.inf)
     best_v = np.full(len(vertices), -1, dtype=np.int64)
+    best_f = np.full(len(vertices), -1, dtype=np.int64)
+    best_b = np.zeros((len(vertices), 3))
     for sign in (1.0, -1.0):
         origins = vertices - sign * 1e-6 * normals  # start just behind the surface: touching counts
         locations, ray_idx, tri_idx = mesh.ray.intersects_location(origins, sign * normals, multiple_hits=False)
@@ -53,7 +58,9 @@ def trace_onto(vertices: np.ndarray, normals: np.ndarray, new_vertices: np.ndarr
         take = (dist <= max_distance) & (best_v[ray_idx] < 0)
         best_t[ray_idx[take]] = dist[take]
         best_v[ray_idx[take]] = nearest[take]
-    return best_v
+        best_f[ray_idx[take]] = tri_idx[take]
+        best_b[ray_idx[take]] = barycentric_of(new_vertices[new_faces[tri_idx[take]]], locations[take])
+    return best_v, best_f, best_b
 
 
 def hand_depth_per_frame(clip: Clip, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -124,15 +131,25 @@ def substitute_object(clip: Clip, new_vertices: np.ndarray, new_faces: np.ndarra
     report["transform"] = transform.tolist()
     normals = vertex_normals(clip.object_vertices, clip.object_faces)
     target = np.full(len(clip.object_vertices), -1, dtype=np.int64)
-    target[labelled] = trace_onto(clip.object_vertices[labelled], normals[labelled], new_vertices, new_faces,
-                                  max_distance)
+    face = np.full(len(clip.object_vertices), -1, dtype=np.int64)
+    bary = np.zeros((len(clip.object_vertices), 3))
+    target[labelled], face[labelled], bary[labelled] = trace_onto(
+        clip.object_vertices[labelled], normals[labelled], new_vertices, new_faces, max_distance)
     labels = np.zeros((clip.n_frames, len(new_vertices)), dtype=clip.contact_labels.dtype)
     ok = labelled[target[labelled] >= 0]
     for v in ok:  # several original vertices may land on one new vertex: keep any code present
         code = clip.contact_labels[:, v]
         j = target[v]
         labels[:, j] = np.where(code > 0, code, labels[:, j])
+    # each traced contact as the surface point it landed on (what pairing uses); the labels
+    # mark their nearest vertices, for display
+    rows = [ok[clip.contact_labels[f, ok] > 0] for f in range(clip.n_frames)]
+    every = np.concatenate(rows) if rows else np.zeros(0, np.int64)
+    frame_of = np.repeat(np.arange(clip.n_frames), [len(r) for r in rows])
     data = {f.name: getattr(clip, f.name) for f in fields(clip)}
+    data.update(contact_offsets=np.concatenate([[0], np.cumsum([len(r) for r in rows])]).astype(np.int64),
+                contact_faces=face[every], contact_barycentric=bary[every],
+                contact_codes=clip.contact_labels[frame_of, every].astype(np.uint8))
     data.update(object_vertices=new_vertices, object_faces=new_faces, contact_labels=labels,
                 object_name=name or f"{clip.object_name}->substitute")
     share = float(len(ok) / len(labelled)) if len(labelled) else 1.0

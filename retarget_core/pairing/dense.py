@@ -402,6 +402,43 @@ def _intersector(vertices: np.ndarray, faces: np.ndarray):
     return RayMeshIntersector(mesh)
 
 
+def _object_contacts(clip, labels, obj_v, obj_f, normals, todo):
+    """A function of a frame f giving its object-side contacts, in the object's frame:
+    (vertex ids (n,), faces (n,), barycentric (n, 3), points (n, 3), unit normals (n, 3),
+    contact codes (n,)). From the clip's contact surface points when it has them (format 2:
+    e.g. a substituted object's contacts where they were traced, never snapped to a vertex;
+    the vertex is the nearest corner), else from its labelled vertices."""
+    if getattr(clip, "contact_offsets", None) is not None:
+        offsets = np.asarray(clip.contact_offsets, dtype=np.int64)
+        faces = np.asarray(clip.contact_faces, dtype=np.int64)
+        bary = np.asarray(clip.contact_barycentric, dtype=np.float64)
+        codes = np.asarray(clip.contact_codes)
+        corners = obj_f[faces]  # (N, 3)
+        points = np.einsum("nk,nkd->nd", bary, obj_v[corners])
+        normal = np.einsum("nk,nkd->nd", bary, normals[corners])
+        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+        nearest = corners[np.arange(len(faces)), np.argmax(bary, axis=1)] if len(faces) else np.zeros(0, np.int64)
+
+        def surface(f):
+            r = slice(offsets[f], offsets[f + 1])
+            return nearest[r], faces[r], bary[r], points[r], normal[r], codes[r]
+        return surface
+
+    has_contact = labels[todo].any(axis=1) if len(todo) else np.zeros(0, dtype=bool)
+    used = np.nonzero(labels[todo[has_contact]].any(axis=0))[0] if has_contact.any() else np.zeros(0, np.int64)
+    vertex_face = np.full(len(obj_v), -1, dtype=np.int64)
+    vertex_bary = np.zeros((len(obj_v), 3))
+    if len(used):
+        sp = SurfacePoints.from_vertices(used, obj_f)
+        vertex_face[used] = sp.faces
+        vertex_bary[used] = sp.barycentric
+
+    def labelled(f):
+        ids = np.flatnonzero(labels[f])
+        return ids, vertex_face[ids], vertex_bary[ids], obj_v[ids], normals[ids], labels[f, ids]
+    return labelled
+
+
 def pair_contacts(
     clip,
     *,
@@ -410,7 +447,8 @@ def pair_contacts(
     progress: Callable[[int, int], None] | None = None,
     ray_offset: float = DEFAULT_RAY_OFFSET,
 ) -> ContactPairs:
-    """Pair every labelled object contact vertex of ``clip`` with a point on the source hand.
+    """Pair every object contact of ``clip`` (its contact surface points when it has them,
+    else its labelled vertices) with a point on the source hand.
 
     ``frames``: clip frame indices to process (default all); the others get no pairs and
     ``processed`` False. ``progress(done, total)`` is called after each processed frame.
@@ -451,35 +489,28 @@ def pair_contacts(
     normals = vertex_normals(obj_v, obj_f)
     if signed_volume(obj_v, obj_f) < 0:  # inward-wound mesh
         normals = -normals
-    has_contact = labels[todo].any(axis=1) if len(todo) else np.zeros(0, dtype=bool)
-    used = np.nonzero(labels[todo[has_contact]].any(axis=0))[0] if has_contact.any() else np.zeros(0, np.int64)
-    vertex_face = np.full(len(obj_v), -1, dtype=np.int64)
-    vertex_bary = np.zeros((len(obj_v), 3))
-    if len(used):
-        sp = SurfacePoints.from_vertices(used, obj_f)
-        vertex_face[used] = sp.faces
-        vertex_bary[used] = sp.barycentric
+    object_contacts = _object_contacts(clip, labels, obj_v, obj_f, normals, todo)
 
     n_contacts = np.zeros(n_frames, dtype=np.int64)
     n_paired = np.zeros(n_frames, dtype=np.int64)
     n_miss = np.zeros(n_frames, dtype=np.int64)
     n_too_far = np.zeros(n_frames, dtype=np.int64)
     n_inverted = np.zeros(n_frames, dtype=np.int64)
-    out = {k: [] for k in ("vertex", "hand_face", "hand_bary", "gap", "inverted", "label")}
+    out = {k: [] for k in ("vertex", "face", "bary", "hand_face", "hand_bary", "gap", "inverted", "label")}
     disc = {k: [] for k in ("frame", "vertex", "reason")}
     hand_sign = None
     total = len(todo)
 
     for done, f in enumerate(todo, start=1):
         f = int(f)
-        ids = np.flatnonzero(labels[f])
+        ids, faces_f, bary_f, local_p, local_n, codes = object_contacts(f)
         if len(ids):
             hv = np.asarray(hand_all[f], dtype=np.float64)
             if hand_sign is None:  # outward-wound hand: +1; inward: -1
                 hand_sign = 1.0 if signed_volume(hv, hand_faces) >= 0 else -1.0
             rot, trans = poses[f, :3, :3], poses[f, :3, 3]
-            p = obj_v[ids] @ rot.T + trans
-            d = normals[ids] @ rot.T
+            p = local_p @ rot.T + trans
+            d = local_n @ rot.T
             inter = _intersector(hv, hand_faces)
             tri = np.asarray(inter.intersects_first(p - ray_offset * d, d), dtype=np.int64)
 
@@ -517,11 +548,13 @@ def pair_contacts(
             n_too_far[f] = int(far.sum())
             n_inverted[f] = int((keep & inverted).sum())
             out["vertex"].append(ids[keep])
+            out["face"].append(faces_f[keep])
+            out["bary"].append(bary_f[keep])
             out["hand_face"].append(tri[keep])
             out["hand_bary"].append(bary[keep])
             out["gap"].append(gap[keep])
             out["inverted"].append(inverted[keep])
-            out["label"].append(labels[f, ids[keep]])
+            out["label"].append(codes[keep])
             if not keep.all():
                 reason = np.where(miss, MISS, TOO_FAR)[~keep]
                 disc["frame"].append(np.full(len(reason), f, dtype=np.int64))
@@ -539,8 +572,8 @@ def pair_contacts(
     pairs = ContactPairs(
         frame_offsets=offsets,
         object_vertex=vertex,
-        object_face=vertex_face[vertex],
-        object_barycentric=vertex_bary[vertex],
+        object_face=cat("face", out, (0,), np.int64),
+        object_barycentric=cat("bary", out, (0, 3), np.float64),
         hand_face=cat("hand_face", out, (0,), np.int64),
         hand_barycentric=cat("hand_bary", out, (0, 3), np.float64),
         gap=cat("gap", out, (0,), np.float64),
