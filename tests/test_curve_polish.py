@@ -16,6 +16,17 @@ def _curves(problem, q):
     return fit_trajectory(times, q, 6, limits=(rig.lower, rig.upper)), times
 
 
+def _kept(report) -> list:
+    """The summed objectives after each kept step of a polish: its trials in order, a kept step
+    being one that scored lower than the last kept value."""
+    kept, current = [], report.objective_before
+    for value in report.history:
+        if value < current:
+            kept.append(value)
+            current = value
+    return kept
+
+
 def test_basis_matrix_reproduces_the_curve():
     knots = np.r_[[0.0] * 4, 0.3, 0.5, [1.0] * 4]
     c = BSplineCurve(knots, np.array([0.2, -1.0, 0.5, 2.0, 0.1, -0.3]))
@@ -84,11 +95,7 @@ def test_polish_stops_at_the_first_step_that_gains_less_than_the_tolerance(solve
     curves, times = _curves(problem, q)
     with Executor(workers=1).frame_runner(problem) as runner:
         _, free = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6)
-        kept, current = [], free.objective_before
-        for value in free.history:  # the trials, in order: a kept step is one that scored lower
-            if value < current:
-                kept.append(value)
-                current = value
+        kept = _kept(free)
         assert len(kept) >= 3 and not free.converged
         gains = -np.diff(np.r_[free.objective_before, kept]) / np.r_[free.objective_before, kept][:-1]
         tolerance = float(np.median(gains))
@@ -131,11 +138,7 @@ def test_polish_towards_the_solved_frames_stops_when_it_is_as_good_or_gains_litt
         _, ref = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=0, solved=q)
         reference = ref.objective_solved
         assert np.isfinite(reference) and reference < free.objective_before  # the fit scores worse
-        kept, current = [], free.objective_before
-        for value in free.history:
-            if value < current:
-                kept.append(value)
-                current = value
+        kept = _kept(free)
         assert len(kept) >= 3
         before = np.r_[free.objective_before, kept][:-1]
         gains = (before - np.array(kept)) / np.maximum(before - reference, 1e-300)
@@ -160,11 +163,7 @@ def test_the_polish_is_done_within_a_share_of_the_solved_frames_objective(solved
     curves, times = _curves(problem, q)
     with Executor(workers=1).frame_runner(problem) as runner:
         _, free = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, solved=q)
-        kept, current = [], free.objective_before
-        for value in free.history:
-            if value < current:
-                kept.append(value)
-                current = value
+        kept = _kept(free)
         reference = free.objective_solved
         ratios = np.array(kept) / reference
         assert len(kept) >= 4 and np.all(ratios > 1.0)  # every kept step is still above the frames
@@ -189,11 +188,7 @@ def test_a_window_of_kept_steps_is_judged_on_the_gap_it_closed_together(solved_d
     curves, times = _curves(problem, q)
     with Executor(workers=1).frame_runner(problem) as runner:
         _, free = polish_curves(runner, curves, times, rig.lower, rig.upper, iterations=6, solved=q)
-        kept, current = [], free.objective_before
-        for value in free.history:
-            if value < current:
-                kept.append(value)
-                current = value
+        kept = _kept(free)
         reference = free.objective_solved
         values = np.r_[free.objective_before, kept]
         assert len(kept) >= 4 and values[-1] > reference

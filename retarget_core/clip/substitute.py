@@ -69,13 +69,17 @@ def hand_depth_per_frame(clip: Clip, vertices: np.ndarray, faces: np.ndarray) ->
     from ..mesh.sdf_grid import signed_distances
 
     lower, upper = vertices.min(axis=0), vertices.max(axis=0)
-    depth = np.zeros(clip.n_frames)
+    points, frame_of = [], []
     for f in range(clip.n_frames):
         pose = clip.object_poses[f]
         local = (clip.hand_vertices[f] - pose[:3, 3]) @ pose[:3, :3]  # world -> object frame
-        near = np.all((local >= lower) & (local <= upper), axis=1)  # only these can be inside
-        if near.any():
-            depth[f] = max(0.0, -float(signed_distances(vertices, faces, local[near]).min()))
+        near = local[np.all((local >= lower) & (local <= upper), axis=1)]  # only these can be inside
+        points.append(near)
+        frame_of.append(np.full(len(near), f))
+    depth = np.zeros(clip.n_frames)
+    if sum(len(p) for p in points):  # one query for every frame: the object's trees are built once
+        inside = -signed_distances(vertices, faces, np.concatenate(points))
+        np.maximum.at(depth, np.concatenate(frame_of), np.maximum(inside, 0.0))
     return depth
 
 

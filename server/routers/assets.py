@@ -217,6 +217,18 @@ def _save_new_asset(store: Store, owner: str, kind: str, name: str, write, info:
     return store.add_asset(owner, sha, kind, name, len(data), final, info)
 
 
+def _isolated(what: str, doing: str, call):
+    """``call()`` (work on uploads in a memory-limited child): a refusal or a crash of the child
+    is a 422 ("cannot <what>: ..."), the memory limit a 413."""
+    try:
+        return call()
+    except (UploadError, ValidatorCrashed) as err:
+        raise HTTPException(422, f"cannot {what}: {err}") from err
+    except MemoryLimitExceeded as err:
+        raise HTTPException(413, f"{doing} {err}; the service refuses work that needs more "
+                                 "(--validation-memory-mb)") from err
+
+
 @router.post("/clips/import-grab", response_model=Asset, status_code=201, responses=ERRORS | BAD_BODY)
 def import_grab(body: GrabImport, response: Response, owner: str = Depends(current_owner),
                 store: Store = Depends(get_store), settings: Settings = Depends(get_settings)):
@@ -232,14 +244,9 @@ def import_grab(body: GrabImport, response: Response, owner: str = Depends(curre
     scratch = store.new_tmp(".d")
     scratch.mkdir()
     try:  # in a child process with the validation memory limit, like an upload
-        try:
-            imported = import_grab_isolated(paths, scratch / "clip.npz", scratch=scratch, hand=body.hand,
-                                            memory_bytes=settings.validation_memory_mb * MIB)
-        except (UploadError, ValidatorCrashed) as err:
-            raise HTTPException(422, f"cannot import the GRAB sequence: {err}") from err
-        except MemoryLimitExceeded as err:
-            raise HTTPException(413, f"importing the GRAB sequence {err}; the service refuses imports that need "
-                                     "more (--validation-memory-mb)") from err
+        imported = _isolated("import the GRAB sequence", "importing the GRAB sequence",
+                             lambda: import_grab_isolated(paths, scratch / "clip.npz", scratch=scratch, hand=body.hand,
+                                                          memory_bytes=settings.validation_memory_mb * MIB))
         rig_name = body.name.removesuffix(".npz") + ".source_rig.usda"
         rig_asset, _ = _save_new_asset(store, owner, "rig", rig_name,
                                        lambda p: shutil.move(imported["rig_path"], str(p)),
@@ -271,15 +278,10 @@ def substitute(body: SubstituteRequest, response: Response, owner: str = Depends
     scratch = store.new_tmp(".d")
     scratch.mkdir()
     try:  # in a child process with the validation memory limit: the mesh is an upload
-        try:
-            made = substitute_isolated(store.asset_path(clip), store.asset_path(mesh), mesh.name,
-                                       scratch / "clip.npz", options, scratch=scratch,
-                                       memory_bytes=settings.validation_memory_mb * MIB)
-        except (UploadError, ValidatorCrashed) as err:
-            raise HTTPException(422, f"cannot substitute the object: {err}") from err
-        except MemoryLimitExceeded as err:
-            raise HTTPException(413, f"substituting the object {err}; the service refuses work that needs "
-                                     "more (--validation-memory-mb)") from err
+        made = _isolated("substitute the object", "substituting the object",
+                         lambda: substitute_isolated(store.asset_path(clip), store.asset_path(mesh), mesh.name,
+                                                     scratch / "clip.npz", options, scratch=scratch,
+                                                     memory_bytes=settings.validation_memory_mb * MIB))
         info = made["info"] | {"substituted_from": clip.sha256, "object_mesh": mesh.sha256,
                                "substitution": made["report"]}
         asset, created = _save_new_asset(store, owner, "clip", body.name,
