@@ -49,6 +49,12 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return normals / np.maximum(length, 1e-300)
 
 
+def face_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F,) triangle areas (units of vertices squared). vertices (V, 3), faces (F, 3)."""
+    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]
+    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+
+
 def face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(F, 3) unit face normals (right-hand rule over the corners); a zero-area face gets a
     zero normal, not NaN. vertices (V, 3), faces (F, 3)."""

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
-from .geometry import rigid_fit
+from .geometry import face_areas, rigid_fit
 
 #: ICP stops when an iteration changes the RMS distance by less than this (metres)
 ICP_TOLERANCE = 1e-9
@@ -67,7 +67,7 @@ def surface_moments(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray
     (columns, largest second moment first), from the exact second moments of the triangles.
     Surface moments, not volume ones: they hold for open scans and survive decimation."""
     tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]  # (F, 3, 3)
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    area = face_areas(vertices, faces)
     total = float(area.sum())
     if not total > 0:
         raise InputError("the surface has no area", element="object mesh")
@@ -191,7 +191,7 @@ def _icp(points: np.ndarray, surface: _Surface, transform: np.ndarray, iteration
 def sample_surface(vertices: np.ndarray, faces: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
     """``count`` (N, 3) points spread over the surface by area, reproducibly."""
     tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    area = face_areas(vertices, faces)
     rng = np.random.default_rng(seed)
     pick = rng.choice(len(tri), size=count, p=area / area.sum())
     u, v = rng.random(count), rng.random(count)

@@ -9,18 +9,13 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
-from .geometry import signed_volume
+from .geometry import face_areas, signed_volume
 from .topology import check_closed_manifold
 
 #: a component holding more than this share of the surface area is not a stray piece
 STRAY_AREA_SHARE = 0.05
 #: metres: vertices this close are one (a scan written as separate triangles)
 WELD_DISTANCE = 1e-9
-
-
-def _areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    t = vertices[faces]
-    return 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
 
 
 def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
@@ -72,7 +67,7 @@ def repair_closed_surface(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.n
         faces = rank[inverse.reshape(-1)][faces]
     # drop degenerate and repeated faces
     good = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])
-    good &= _areas(vertices, faces) > 0
+    good &= face_areas(vertices, faces) > 0
     _, unique = np.unique(np.sort(faces, axis=1), axis=0, return_index=True)
     keep = np.zeros(len(faces), dtype=bool)
     keep[unique] = True
@@ -88,7 +83,7 @@ def repair_closed_surface(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.n
     graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(len(vertices),) * 2)
     _, label = connected_components(graph, directed=False)
     face_label = label[faces[:, 0]]
-    area = np.bincount(face_label, weights=_areas(vertices, faces))
+    area = np.bincount(face_label, weights=face_areas(vertices, faces))
     if np.count_nonzero(area) > 1:
         main = int(np.argmax(area))
         others = area.sum() - area[main]
