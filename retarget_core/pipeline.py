@@ -214,7 +214,8 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
         unused_settings=unused_settings(config), frames=(first, last), provenance=provenance, rig=target,
         object_vertices=clip.object_vertices, object_faces=clip.object_faces, object_poses=clip.object_poses,
         table_pose=clip.table_pose, table_half_extents=clip.table_half_extents, contacts=contacts,
-        source_contact_count=np.diff(pairs.frame_offsets), source_hand=_source_snapshots(clip, count))
+        source_contact_count=np.diff(pairs.frame_offsets),
+        source_hand=_source_snapshots(clip, np.diff(pairs.frame_offsets)))
 
 
 def check_inputs(clip: Clip, source: Rig, target: Rig, annotations, config: RetargetConfig, *,
@@ -510,13 +511,13 @@ def run_counts(reports: dict) -> dict:
             "failed_frames": [{"frame": f, "error": failed[f]} for f in sorted(failed)]}
 
 
-def _source_snapshots(clip: Clip, contact_count: np.ndarray, n: int = 4):
-    """A few frames of the source hand for side-by-side renders: frames (K,) spread over the
-    contact frames (over all frames without contact), vertices (K, V, 3) float32, faces."""
-    pool = np.nonzero(contact_count > 0)[0]
-    if len(pool) == 0:
-        pool = np.arange(clip.n_frames)
-    frames = np.unique(pool[np.linspace(0, len(pool) - 1, min(n, len(pool))).round().astype(int)])
+def _source_snapshots(clip: Clip, source_contact_count: np.ndarray):
+    """The source hand at the frames the pictures show (:func:`~retarget_core.render.preview.picture_frames`:
+    the contact sheet's and the preview's): frames (K,), vertices (K, V, 3) float32, faces."""
+    from .render.preview import picture_frames
+
+    sheet, preview = picture_frames(clip.n_frames, clip.fps, source_contact_count)
+    frames = np.union1d(sheet, preview)
     return frames, clip.hand_vertices[frames].astype(np.float32), clip.hand_faces
 
 

@@ -109,7 +109,7 @@ class RetargetResult:
         })
 
     def write(self, out_dir, rig_path=None, *, rig_asset_path: str | None = None,
-              control_rate_hz: float | None = None) -> dict:
+              control_rate_hz: float | None = None, pictures: bool = True) -> dict:
         """Write animation.usda (over ``rig_path`` when it is a rig file the layer composes over,
         :func:`~retarget_core.export.usd_animation.layers_over`; else over a rig.usda written here), result.json, animation.json and scene.npz (object mesh and poses, table,
         the frame's contact targets: what ``handretarget evaluate`` measures against) into
@@ -119,7 +119,9 @@ class RetargetResult:
         rather than ``rig_path``, which must then be a USD file it composes over; rig.usda is
         written here too (result.json names it). For a robot rig (URDF / MJCF) animation.json
         also holds the joint commands in the robot file's order at ``control_rate_hz`` (default:
-        the clip's rate; :mod:`~retarget_core.export.robot_trajectory`)."""
+        the clip's rate; :mod:`~retarget_core.export.robot_trajectory`). ``pictures`` (with the object
+        known): contact_sheet.png, preview.gif and pictures.json of the delivered curve
+        (:mod:`~retarget_core.render.preview`)."""
         from .export import write_animation_json, write_animation_usd
         from .export.robot_trajectory import is_robot, robot_trajectory
         from .export.usd_animation import layers_over
@@ -176,12 +178,29 @@ class RetargetResult:
         text = json.dumps(self.to_dict(), indent=1, allow_nan=False)
         with atomic_path(paths["result.json"], suffix=".json.tmp") as tmp:
             tmp.write_text(text, encoding="utf-8")
+        if pictures and self.object_vertices is not None:
+            paths.update(self.write_pictures(out, rig))
         paths["animation.json"] = out / "animation.json"
         write_animation_json(paths["animation.json"], self.dof_names, self.times, self.sampled(), extra=to_jsonable({
             "rig": self.rig_name, "fps": self.fps, "dof_kinds": self.dof_kinds, "lower": self.lower,
             "upper": self.upper, "values": "spline" if self.curves else "frames"}), robot=robot)
         return paths
 
+
+    def write_pictures(self, out_dir, rig=None) -> dict:
+        """The contact sheet and preview of the delivered curve on ``rig`` (default: the result's)
+        into ``out_dir`` ({name: path})."""
+        from .render.preview import result_scene, write_pictures
+
+        source = self.provenance.get("inputs", {}).get("source_rig", {})
+        source_name = source.get("name") or Path(str(source.get("spec") or source.get("path") or "source")).stem
+        scene = result_scene(
+            rig if rig is not None else self.rig, self.sampled(), self.fps, object_vertices=self.object_vertices, object_faces=self.object_faces,
+            object_poses=self.object_poses, contacts=self.contacts, contact_count=self.source_contact_count,
+            source_hand=self.source_hand, table_pose=self.table_pose, table_half_extents=self.table_half_extents,
+            title=f"{Path(self.clip_source).stem or 'clip'} -> {self.rig_name}, frames {self.frames[0]}:{self.frames[1]}",
+            source_name=source_name)
+        return write_pictures(scene, out_dir)
 
     def _write_scene(self, path) -> None:
         c = self.contacts

@@ -179,7 +179,7 @@ def run_job(store: Store, job_id: str, settings: Settings, *, parent: int | None
             from retarget_core.evaluate.report import write_evaluation
 
             progress("evaluating", 0, 1)
-            write_evaluation(out, stride=settings.evaluate_stride)
+            write_evaluation(out, stride=settings.evaluate_stride, render=False)  # the write drew the pictures
         store.publish_artifacts(job_id, out)
         timings = {k: round(float(v), 4) for k, v in result.timings.items()}
         store.update_job(job_id, only_if_state=RUNNING, state=JobState.SUCCEEDED, stage="done", progress=1.0,

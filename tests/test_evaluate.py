@@ -49,7 +49,7 @@ def test_evaluate_writes_metrics_and_plots(outputs):
     out = outputs["splines"]
     code, text, err = run_cli(["evaluate", str(out)])
     assert code == 0, err
-    for name in ("metrics.json", "intersection.png", "contact_error.png", "frames.png"):
+    for name in ("metrics.json", "intersection.png", "contact_error.png", "contact_sheet.png", "preview.gif"):
         assert (out / name).stat().st_size > 0 and f"wrote {out / name}" in text
         if name.endswith(".png"):
             assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

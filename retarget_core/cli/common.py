@@ -78,9 +78,10 @@ class _ProgressBar:
             self.stream.flush()
 
 
-def _run_retarget(inputs, config, executor, out, rig_path, pairs=None, control_rate_hz=None):
+def _run_retarget(inputs, config, executor, out, rig_path, pairs=None, control_rate_hz=None, pictures=True):
     """Retarget with a progress bar on stderr and write the result files (a robot's joint
-    commands at ``control_rate_hz``); (result, paths)."""
+    commands at ``control_rate_hz``; the contact sheet and preview unless ``pictures`` is false);
+    (result, paths)."""
     import numpy as np
 
     from ..errors import InputError
@@ -99,7 +100,7 @@ def _run_retarget(inputs, config, executor, out, rig_path, pairs=None, control_r
         result = retarget(inputs, config, executor, pairs=pairs)
     finally:
         bar.close()
-    return result, result.write(out, rig_path, control_rate_hz=control_rate_hz)
+    return result, result.write(out, rig_path, control_rate_hz=control_rate_hz, pictures=pictures)
 
 
 def _fmt_mm(value) -> str:

@@ -85,8 +85,9 @@ def _retarget_demo(out: Path, resolution: float, time_scale: float) -> None:
     clip.save(clip_path)
     print(f"clip {clip_path}: {clip.n_frames} frames of {RETARGET_DEMO_CLIP} around the first contact")
     config = load_config(None, "default")
-    rows = ["| hand | DOFs | frames | seconds | median contact distance (mm) | failed frames |",
-            "|---|---:|---:|---:|---:|---:|"]
+    rows = ["| hand | DOFs | frames | seconds | median contact distance (mm) | failed frames | pictures |",
+            "|---|---:|---:|---:|---:|---:|---|"]
+    pictures = []
     pairs = pair_contacts(clip)  # the same clip for every hand: pair it once
     for name in DEMO_HANDS:
         print(f"-- {name}")
@@ -94,12 +95,37 @@ def _retarget_demo(out: Path, resolution: float, time_scale: float) -> None:
                               load_annotations(out / "annotations" / f"{name}.json"),
                               names={"clip": str(clip_path), "source_rig": clip.source_rig,
                                      "target_rig": f"demo:{name}@{resolution:g}"})
-        result, _ = _run_retarget(inputs, config, Executor(workers=default_workers()), out / "retarget" / name,
+        result, paths = _run_retarget(inputs, config, Executor(workers=default_workers()), out / "retarget" / name,
                                   out / "rigs" / f"{name}.usda", pairs=pairs)
         s = result.summary
+        links = ", ".join(f"[{label}]({name}/{file})" for label, file in
+                          (("contact sheet", "contact_sheet.png"), ("preview", "preview.gif")) if file in paths)
+        pictures.append((name, s, [file for file in ("contact_sheet.png", "preview.gif") if file in paths]))
         rows.append(f"| {name} | {s['dofs']} | {s['frames']} | {s['seconds']:.1f} | "
-                    f"{_fmt_mm(s['contact_distance_median_mm'])} | {s['failed_frames']} |")
+                    f"{_fmt_mm(s['contact_distance_median_mm'])} | {s['failed_frames']} | {links} |")
     table = "\n".join(rows) + "\n"
-    (out / "retarget" / "summary.md").write_text(
-        f"# Retarget of {clip_path.name} ({clip.n_frames} frames at {clip.fps:g} fps), preset default\n\n" + table)
-    print("\n" + table + f"wrote {out / 'retarget' / 'summary.md'}")
+    title = f"Retarget of {clip_path.name} ({clip.n_frames} frames at {clip.fps:g} fps), preset default"
+    (out / "retarget" / "summary.md").write_text(f"# {title}\n\n" + table)
+    _write_demo_html(out / "retarget" / "index.html", title, pictures)
+    print("\n" + table + f"wrote {out / 'retarget' / 'summary.md'}\nwrote {out / 'retarget' / 'index.html'} "
+          "(every hand's contact sheet and preview)")
+
+
+def _write_demo_html(path: Path, title: str, pictures) -> None:
+    """index.html beside summary.md: per hand its figures, contact sheet and animated preview."""
+    import html
+
+    esc = html.escape
+    parts = ["<!doctype html><html><head><meta charset='utf-8'>", f"<title>{esc(title)}</title>",
+             "<style>body{font-family:sans-serif;margin:2em}img{margin:4px;vertical-align:top}</style></head><body>",
+             f"<h1>{esc(title)}</h1>",
+             "<p>Each hand: the contact sheet (captured source left, the delivered curve right, contacts coloured by "
+             "their distance to the object) and the animated preview of the whole window.</p>"]
+    for name, s, files in pictures:
+        parts.append(f"<section><h2>{esc(name)}</h2><p>median contact distance "
+                     f"{esc(_fmt_mm(s['contact_distance_median_mm']))} mm at the {esc(str(s['figures_at']))}; "
+                     f"{s['failed_frames']} failed frames</p>")
+        parts += [f"<img src='{esc(name)}/{esc(f)}' alt='{esc(name)} {esc(f)}'>" for f in files]
+        parts.append("</section>")
+    parts.append("</body></html>")
+    path.write_text("\n".join(parts) + "\n", encoding="utf-8")

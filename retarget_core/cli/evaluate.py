@@ -12,7 +12,7 @@ def add_commands(sub) -> None:
     ev.add_argument("dir", help="a folder written by handretarget retarget")
     ev.add_argument("--stride", type=int, default=1, help="measure intersections every N-th frame (default 1)")
     ev.add_argument("--self-stride", type=int, help="self intersection every N-th frame (default: --stride)")
-    ev.add_argument("--no-render", action="store_true", help="skip frames.png")
+    ev.add_argument("--no-render", action="store_true", help="skip the pictures (contact_sheet.png, preview.gif)")
     ev.set_defaults(func=_cmd_evaluate)
 
     grid = sub.add_parser("grid", help="every demo target x demo clip with our method and both baselines: "

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from .common import _executor, _executor_arguments, _fmt_mm, _parse_sets, _run_retarget
@@ -31,6 +32,8 @@ def add_commands(sub) -> None:
     ret.add_argument("--rate", type=float, default=None, metavar="HZ",
                      help="robot rigs (URDF / MJCF): the control rate of the joint commands in animation.json "
                           "(default: the clip's frame rate)")
+    ret.add_argument("--no-pictures", action="store_true",
+                     help="skip the contact sheet and animated preview (contact_sheet.png, preview.gif)")
     _executor_arguments(ret)
     ret.set_defaults(func=_cmd_retarget)
 
@@ -49,7 +52,7 @@ def _cmd_retarget(args) -> int:
                                          "mapping": load_hand_mapping(args.hand_map) if args.hand_map else None})
     rig_path = None if str(args.rig).startswith("demo:") else args.rig
     result, paths = _run_retarget(inputs, config, _executor(args), Path(args.out), rig_path,
-                                  control_rate_hz=args.rate)
+                                  control_rate_hz=args.rate, pictures=not args.no_pictures)
     s = result.summary
     print(f"retargeted {args.clip} (frames {result.frames[0]}:{result.frames[1]}) onto {inputs.target_rig.name}: "
           f"{s['frames']} frames, {s['dofs']} DOFs, {s['control_points'] or 'no'} control points per DOF")
@@ -73,6 +76,12 @@ def _cmd_retarget(args) -> int:
         print(f"  robot: {len(robot['joints'])} joints in the file's order at {robot['rate_hz']:g} Hz; velocity "
               f"limits {robot['velocity_limits']}" + (f", exceeded on {', '.join(over)} (animation.json robot.velocity "
                                                       "lists when)" if over else ", all kept"))
+    if "pictures.json" in paths:
+        pictures = json.loads(Path(paths["pictures.json"]).read_text(encoding="utf-8"))
+        share = pictures["contacts_unoccluded_share"]
+        print(f"  pictures: seen from {pictures['view_direction']} (towards the eye), "
+              + (f"{100 * share:.0f} % of the sheet's {pictures['contacts_in_sheet']} contact points unoccluded"
+                 if pictures["contacts_in_sheet"] else "no contacts in the sheet's frames"))
     for path in paths.values():
         print(f"wrote {path}")
     return 0

@@ -159,7 +159,7 @@ def run_compare(clip_path, rigs, out, *, annotations=None, workers=None, stride:
         result = retarget(inputs, config, executor, pairs=pairs)
         rig_path = None if str(spec).startswith("demo:") else spec
         result.write(folder, rig_path)
-        write_evaluation(folder, stride=stride)
+        write_evaluation(folder, stride=stride, render=False)  # the write drew the pictures
         log(f"{target.name}: median contact distance {result.summary['contact_distance_median_mm']}")
         folders.append(folder)
     return compare_outputs(folders[0], folders[1], out)

@@ -140,7 +140,7 @@ def run_grid(out, *, targets=None, clips=None, methods=METHODS, frames: int = 12
                     result = retarget(inputs, load_config(None, "default", {**(overrides or {}), "method": method}),
                                       Executor(workers=default_workers() if workers is None else workers), pairs=clip_pairs)
                     result.write(cell)
-                    write_evaluation(cell, stride=stride)
+                    write_evaluation(cell, stride=stride, render=False)  # the write drew the pictures
                 except InputError as err:  # a cell that cannot run is reported in the table, not hidden
                     cell.mkdir(parents=True, exist_ok=True)
                     (cell / "error.txt").write_text(str(err) + "\n", encoding="utf-8")
@@ -289,7 +289,7 @@ def _html(out: Path, rows, header, comp, goals) -> str:
         parts.append(f"<section id='{esc(anchor)}'><h3>{esc(r['hand'])} / {esc(r['clip'])} / {esc(r['method'])}</h3>")
         if r["error"]:
             parts.append(f"<p>error: {esc(r['error'])}</p>")
-        for name in ("intersection.png", "contact_error.png", "frames.png"):
+        for name in ("contact_sheet.png", "preview.gif", "intersection.png", "contact_error.png"):
             if (r["cell"] / name).is_file():
                 rel = (r["cell"] / name).relative_to(out).as_posix()
                 parts.append(f"<img src='{esc(rel)}' alt='{esc(name)}'>")

@@ -294,44 +294,28 @@ def _save(fig, path) -> None:
         fig.savefig(tmp, format="png")
 
 
-def render_frames(folder, out_path, size: int = 320) -> Path | None:
-    """frames.png: the source hand (left) and the target hand (right) with the object at the
-    few frames scene.npz keeps; None when it keeps none."""
-    from PIL import Image
-
-    from ..render.raster import frame_camera, render_meshes
+def write_output_pictures(folder) -> dict:
+    """contact_sheet.png, preview.gif and pictures.json of the retarget output in ``folder``
+    (:mod:`~retarget_core.render.preview`), from its result, rig and scene.npz; {name: path}."""
+    from dataclasses import replace
 
     folder = Path(folder)
     result, rig, scene = load_output(folder)
     extras = _scene_extras(folder / "scene.npz")
-    if "source_frames" not in extras:
-        return None
-    kin = rig.kinematics()
-    q = result.sampled()
-    rows = []
-    for k, f in enumerate(extras["source_frames"]):
-        pose = scene.object_poses[f]
-        obj = scene.object_vertices @ pose[:3, :3].T + pose[:3, 3]
-        source = extras["source_hand_vertices"][k].astype(np.float64)
-        target = kin.skin(q[f])
-        camera = frame_camera(np.vstack([source, target, obj]), size=(size, size))
-        tiles = []
-        for hand, hand_faces in ((source, extras["source_hand_faces"]), (target, rig.surface.faces)):
-            image = render_meshes([(hand, hand_faces, (0.85, 0.68, 0.58)), (obj, scene.object_faces, (0.55, 0.7, 0.85))],
-                                  camera, (size, size))
-            tiles.append(np.asarray(image))
-        rows.append(np.concatenate(tiles, axis=1))
-    picture = Image.fromarray(np.concatenate(rows, axis=0).astype(np.uint8))
-    out_path = Path(out_path)
-    with atomic_path(out_path, suffix=".png.tmp") as tmp:
-        picture.save(tmp, format="PNG")
-    return out_path
+    source_hand = ((extras["source_frames"], extras["source_hand_vertices"], extras["source_hand_faces"])
+                   if "source_frames" in extras else None)
+    result = replace(result, rig=rig, object_vertices=scene.object_vertices, object_faces=scene.object_faces,
+                     object_poses=scene.object_poses, table_pose=scene.table_pose,
+                     table_half_extents=scene.table_half_extents, contacts=scene_contacts(scene),
+                     source_contact_count=scene.source_contact_count, source_hand=source_hand)
+    return result.write_pictures(folder)
 
 
 def write_evaluation(folder, *, stride: int = 1, self_intersection_stride: int | None = None,
                      render: bool = True) -> dict:
     """Evaluate the retarget output ``folder`` and write metrics.json, intersection.png,
-    contact_error.png and (``render``) frames.png into it; returns {name: path}."""
+    contact_error.png and (``render``) the pictures (contact_sheet.png, preview.gif,
+    pictures.json: :func:`write_output_pictures`) into it; returns {name: path}."""
     from ..jsonio import to_jsonable
 
     folder = Path(folder)
@@ -342,7 +326,5 @@ def write_evaluation(folder, *, stride: int = 1, self_intersection_stride: int |
         tmp.write_text(text, encoding="utf-8")
     paths.update(write_plots(to_jsonable(doc), folder))
     if render:
-        frames = render_frames(folder, folder / "frames.png")
-        if frames is not None:
-            paths["frames.png"] = frames
+        paths.update(write_output_pictures(folder))
     return paths

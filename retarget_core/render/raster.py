@@ -118,24 +118,35 @@ class Camera:
 
 def frame_camera(
     points,
-    view: str = "three_quarter",
+    view: str | Sequence[float] = "three_quarter",
     margin: float = 0.08,
     *,
     size: tuple[int, int] = (320, 320),
     projection: str = "perspective",
     fov: float = 30.0,
+    up: Sequence[float] | None = None,
 ) -> Camera:
-    """A camera looking at ``points`` (N, 3) from ``view`` (``front`` = from -Y, ``side`` = from
-    +X, ``top`` = from +Z, ``three_quarter`` = from front-right-above; world Z-up) so that they
-    fill an image of ``size`` with ``margin`` (a fraction of the framed extent) on each side."""
+    """A camera looking at ``points`` (N, 3) from ``view`` so that they fill an image of ``size``
+    with ``margin`` (a fraction of the framed extent) on each side. ``view`` is a name (``front`` =
+    from -Y, ``side`` = from +X, ``top`` = from +Z, ``three_quarter`` = from front-right-above;
+    world Z-up) or a direction (3,) from the points towards the eye; ``up`` (default: world +Z,
+    +Y when looking along Z) overrides the camera's up."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     if len(pts) == 0:
         raise InputError("no finite points to frame", element="points")
-    if view not in _VIEWS:
-        raise InputError(f"unknown view {view!r} (choose from {', '.join(_VIEWS)})", element="view")
-    direction, up = _VIEWS[view]
-    direction = np.asarray(direction) / np.linalg.norm(direction)
+    if isinstance(view, str):
+        if view not in _VIEWS:
+            raise InputError(f"unknown view {view!r} (choose from {', '.join(_VIEWS)})", element="view")
+        direction, view_up = _VIEWS[view]
+    else:
+        direction = np.asarray(view, dtype=np.float64).reshape(3)
+        if not (np.all(np.isfinite(direction)) and np.linalg.norm(direction) > 1e-12):
+            raise InputError(f"a view direction must be a finite non-zero 3-vector, got {view!r}", element="view")
+        along_z = abs(direction[2]) > 0.95 * np.linalg.norm(direction)
+        view_up = (0.0, 1.0, 0.0) if along_z else (0.0, 0.0, 1.0)
+    up = view_up if up is None else up
+    direction = np.asarray(direction, dtype=np.float64) / np.linalg.norm(direction)
     width, height = size
     aspect = width / height
     scale = 1.0 + 2.0 * max(float(margin), 0.0)
@@ -167,6 +178,35 @@ def frame_camera(
 
 
 # ---- rasteriser --------------------------------------------------------------------------------
+def depth_buffer(meshes, camera: Camera, size: tuple[int, int] = (320, 320)) -> np.ndarray:
+    """(H, W) distance along the view direction (world units) of the nearest surface of
+    ``meshes`` (``(vertices (V, 3), faces (F, 3), ...)``) at each pixel centre, ``inf`` where none;
+    ``size = (W, H)``. The same visibility as :func:`render_meshes` without shading."""
+    width, height = int(size[0]), int(size[1])
+    if width < 1 or height < 1:
+        raise InputError(f"image size must be positive, got {size!r}", element="size")
+    tris = []
+    for mi, mesh in enumerate(meshes):
+        verts = np.asarray(mesh[0], dtype=np.float64).reshape(-1, 3)
+        faces = np.asarray(mesh[1]).reshape(-1, 3)
+        if len(faces) == 0:
+            continue
+        if not np.issubdtype(faces.dtype, np.integer) or faces.min() < 0 or faces.max() >= len(verts):
+            raise InputError(f"mesh {mi}: faces must be integer indices in [0, {len(verts)})", element="faces")
+        corners = verts[faces.astype(np.int64)]
+        tris.append(corners[np.all(np.isfinite(corners).reshape(len(faces), -1), axis=1)])
+    if not tris:
+        return np.full((height, width), np.inf)
+    view = camera.to_view(np.concatenate(tris).reshape(-1, 3)).reshape(-1, 3, 3)
+    if not camera.orthographic:
+        view = _clip_near(view, camera.near)[0]
+    if len(view) == 0:
+        return np.full((height, width), np.inf)
+    scr = camera.view_to_pixels(view.reshape(-1, 3), (width, height)).reshape(-1, 3, 2)
+    key = view[..., 2] if camera.orthographic else -1.0 / view[..., 2]
+    return _key_to_distance(_rasterise(scr, key, width, height)[0], camera)
+
+
 def render_meshes(
     meshes,
     camera: Camera,
@@ -179,14 +219,17 @@ def render_meshes(
     crease_deg: float = 40.0,
     outline: bool = True,
     supersample: int = 1,
-) -> np.ndarray:
+    return_depth: bool = False,
+):
     """Render ``meshes`` (a list of ``(vertices (V, 3), faces (F, 3), colour)``, where colour is one
     RGB triple or per-vertex colours (V, 3); a 2-tuple gets a neutral grey) seen by ``camera``.
 
     Returns an (H, W, 3) uint8 image, ``size = (W, H)``. ``smooth`` interpolates vertex normals
     except where a face bends more than ``crease_deg`` from its vertex normal (boxes stay flat);
     ``outline`` darkens silhouettes and depth jumps; ``supersample`` = k renders at k x k the
-    resolution and averages down (anti-aliasing)."""
+    resolution and averages down (anti-aliasing). ``return_depth``: return ``(image, depth)``, depth
+    (H*k, W*k) the distance along the view direction of the visible surface (``inf`` where none), as
+    :func:`depth_buffer`, at the supersampled resolution."""
     width, height = int(size[0]), int(size[1])
     if width < 1 or height < 1:
         raise InputError(f"image size must be positive, got {size!r}", element="size")
@@ -230,7 +273,7 @@ def render_meshes(
 
     image = np.broadcast_to(bg, (sh, sw, 3)).copy()
     if not corner_pos:
-        return _finish(image, k)
+        return _finish(image, k, np.full((sh, sw), np.inf) if return_depth else None)
     pos = np.concatenate(corner_pos)  # (F, 3, 3) world corners
     nrm = np.concatenate(corner_nrm)
     col = np.concatenate(corner_col)
@@ -245,7 +288,7 @@ def render_meshes(
     else:
         view, src, bary_map = _clip_near(view, camera.near)
     if len(view) == 0:
-        return _finish(image, k)
+        return _finish(image, k, np.full((sh, sw), np.inf) if return_depth else None)
 
     scr = camera.view_to_pixels(view.reshape(-1, 3), (sw, sh)).reshape(-1, 3, 2)
     depth = view[..., 2]  # distance along the view direction
@@ -254,7 +297,7 @@ def render_meshes(
 
     hit = tri_buf >= 0
     if not hit.any():
-        return _finish(image, k)
+        return _finish(image, k, _key_to_distance(zbuf, camera) if return_depth else None)
     pix = np.nonzero(hit.ravel())[0]
     t = tri_buf.ravel()[pix]
     b1 = b1_buf.ravel()[pix]
@@ -290,14 +333,23 @@ def render_meshes(
         mesh_buf = np.full(sw * sh, -1, dtype=np.int64)
         mesh_buf[pix] = mesh_of[s]
         image[_edges(zbuf, mesh_buf.reshape(sh, sw), camera, sh, k)] *= 0.45
-    return _finish(image, k)
+    return _finish(image, k, _key_to_distance(zbuf, camera) if return_depth else None)
 
 
-def _finish(image: np.ndarray, k: int) -> np.ndarray:
+def _finish(image: np.ndarray, k: int, depth: np.ndarray | None = None):
     if k > 1:
         h, w = image.shape[0] // k, image.shape[1] // k
         image = image.reshape(h, k, w, k, 3).mean(axis=(1, 3))
-    return np.clip(np.rint(image * 255.0), 0, 255).astype(np.uint8)
+    image = np.clip(np.rint(image * 255.0), 0, 255).astype(np.uint8)
+    return image if depth is None else (image, depth)
+
+
+def _key_to_distance(key: np.ndarray, camera: Camera) -> np.ndarray:
+    """The z-buffer's key (distance for orthographic, -1/distance for perspective) -> distance."""
+    if camera.orthographic:
+        return key
+    with np.errstate(divide="ignore"):
+        return np.where(np.isfinite(key), -1.0 / key, np.inf)
 
 
 def _as_rgb01(colour) -> np.ndarray:

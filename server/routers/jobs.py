@@ -22,7 +22,8 @@ JOB_ID = r"^[0-9a-f]{32}$"
 ARTIFACTS = {  # name -> media type; nothing else under a job's folder is ever served
     "animation.usda": "text/plain", "animation.usdc": "application/octet-stream", "rig.usda": "text/plain",
     "result.json": "application/json", "animation.json": "application/json", "metrics.json": "application/json",
-    "intersection.png": "image/png", "contact_error.png": "image/png", "frames.png": "image/png",
+    "intersection.png": "image/png", "contact_error.png": "image/png", "contact_sheet.png": "image/png",
+    "preview.gif": "image/gif", "pictures.json": "application/json",
 }
 ERRORS = {401: {"model": Problem}, 404: {"model": Problem}, 409: {"model": Problem}, 422: {"model": Problem},
           429: {"model": Problem}}
@@ -221,7 +222,8 @@ def get_artifact(name: str, job_id: str = Path(..., pattern=JOB_ID), owner: str 
                  store: Store = Depends(get_store)):
     """One artifact of a succeeded job: animation.usda / .usdc (over rig.usda, which is also
     served), result.json, animation.json (joint values per frame), metrics.json, and the
-    report's plots (intersection.png, contact_error.png, frames.png)."""
+    report's plots (intersection.png, contact_error.png) and the pictures of the delivered curve
+    (contact_sheet.png, preview.gif, pictures.json)."""
     if name not in ARTIFACTS:
         raise HTTPException(404, f"no artifact {name!r}; artifacts are: {', '.join(sorted(ARTIFACTS))}")
     job = _own_job(store, owner, job_id)

@@ -45,7 +45,8 @@ def test_job_runs_and_reports_progress(finished):
     assert "full pass" in stages and "spline fit" in stages
     assert final["frames_done"] == final["frames_total"] == 46
     assert final["attempts"] == 1 and final["progress"] == 1.0
-    assert {"animation.usda", "animation.usdc", "result.json", "metrics.json", "frames.png"} <= set(final["artifacts"])
+    assert {"animation.usda", "animation.usdc", "result.json", "metrics.json", "contact_sheet.png",
+            "preview.gif", "pictures.json"} <= set(final["artifacts"])
     assert final["summary"]["frames"] == 46 and final["timings"]["total"] > 0
 
 
