@@ -2,13 +2,9 @@
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
-from .annotate import _cmd_annotate_demo
-from .clip import _cmd_clip_demo, _cmd_clip_pair, _cmd_clip_render
 from .common import _fmt_mm, _run_retarget
-from .rig import _cmd_rig_demo
 from .transfer import _transfer_table
 
 
@@ -28,19 +24,20 @@ def _cmd_demo(args) -> int:
     of a clip onto every demo hand (USD animation, result and joint JSON, summary table)."""
     out = Path(args.out)
     print(f"== demo hand library -> {out / 'rigs'}")
-    _cmd_rig_demo(argparse.Namespace(out=out / "rigs", hand=None, resolution=args.resolution))
+    _step("rig", "demo", "--out", out / "rigs", "--resolution", args.resolution)
     print(f"\n== demonstration clips -> {out / 'clips'}")
-    _cmd_clip_demo(argparse.Namespace(out=out / "clips", clip=args.clip, time_scale=args.time_scale,
-                                      resolution=0.004))
+    _step("clip", "demo", "--out", out / "clips", "--time-scale", args.time_scale, "--resolution", 0.004,
+          *[a for c in args.clip or () for a in ("--clip", c)])
     clips = [c for c in sorted((out / "clips").glob("*.npz")) if not c.name.endswith(".pairs.npz")]
     print("\n== dense contact pairing")
-    _cmd_clip_pair(argparse.Namespace(paths=clips, epsilon=0.015, per_frame=False, out=out / "clips"))
+    _step("clip", "pair", *clips, "--epsilon", 0.015, "--out", out / "clips")
     print("\n== renders")
     for path in clips:
-        _cmd_clip_render(argparse.Namespace(path=path, out=path.with_suffix(".png"), frames=None, count=6,
-                                            view="three_quarter", size="320x320"))
+        _step("clip", "render", path, "--out", path.with_suffix(".png"), "--count", 6, "--view", "three_quarter",
+              "--size", "320x320")
     print(f"\n== annotations -> {out / 'annotations'}")
-    _cmd_annotate_demo(argparse.Namespace(out=out / "annotations", resolution=args.resolution, source_resolution=0.004))
+    _step("annotate", "demo", "--out", out / "annotations", "--resolution", args.resolution,
+          "--source-resolution", 0.004)
     print(f"\n== contact transfer onto every demo hand -> {out / 'transfer'}")
     from ..clip import load_clip
     from ..pairing import load_contact_pairs
@@ -55,6 +52,17 @@ def _cmd_demo(args) -> int:
     print(f"\n== retarget one second of {RETARGET_DEMO_CLIP} onto every demo hand -> {out / 'retarget'}")
     _retarget_demo(out, args.resolution, args.time_scale)
     return 0
+
+
+def _step(*argv) -> None:
+    """Run one ``handretarget`` sub-command as the command line would (its parser's defaults:
+    a step never misses an option added to it later); an error stops the demo."""
+    from . import build_parser
+
+    args = build_parser().parse_args([str(a) for a in argv])
+    code = args.func(args)
+    if code:
+        raise SystemExit(f"handretarget demo: the step `handretarget {' '.join(map(str, argv))}` failed ({code})")
 
 
 #: The demo's retarget stage: one second (RETARGET_DEMO_FRAMES at 120 fps) of this clip at its
