@@ -259,3 +259,23 @@ def test_bench_refuses_a_negative_speedup_frame_count(capsys):
         build_parser().parse_args(["bench", "--speedup-frames", "-2"])
     assert stop.value.code == 2
     assert "must be 0 or more, got -2" in capsys.readouterr().err
+
+
+def test_demo_runs_every_stage_and_writes_each_hands_pictures(tmp_path, capsys):
+    """The README's main job end to end (one hand, one short clip, coarse meshes): every stage
+    runs through the command line's own parser, and the retarget summary links the pictures."""
+    out = tmp_path / "demo"
+    assert main(["demo", "--hand", "nobody", "--out", str(out)]) == 2
+    assert "no demo hand nobody" in capsys.readouterr().err and not out.exists()
+    assert main(["demo", "--out", str(out), "--clip", "box_pinch", "--time-scale", "0.1", "--resolution", "0.006",
+                 "--hand", "prosthetic_1dof"]) == 0
+    assert (out / "rigs" / "prosthetic_1dof.usda").is_file() and (out / "clips" / "box_pinch.png").is_file()
+    assert (out / "annotations" / "prosthetic_1dof.json").is_file()
+    assert any((out / "transfer" / "prosthetic_1dof").iterdir())
+    hand = out / "retarget" / "prosthetic_1dof"
+    for name in ("animation.usda", "result.json", "contact_sheet.png", "preview.gif", "pictures.json"):
+        assert (hand / name).stat().st_size > 0, name
+    summary = (out / "retarget" / "summary.md").read_text()
+    assert "[contact sheet](prosthetic_1dof/contact_sheet.png), [preview](prosthetic_1dof/preview.gif)" in summary
+    page = (out / "retarget" / "index.html").read_text()
+    assert "src='prosthetic_1dof/contact_sheet.png'" in page and "src='prosthetic_1dof/preview.gif'" in page

@@ -42,6 +42,7 @@ def add_commands(sub) -> None:
     a_demo.add_argument("--out", required=True)
     a_demo.add_argument("--resolution", type=float, default=0.004, help="target hands' mesh cell size (m)")
     a_demo.add_argument("--source-resolution", type=float, default=0.004, help="source hand's mesh cell size (m)")
+    a_demo.add_argument("--hand", action="append", help="only this demo hand (repeatable; default: all)")
     a_demo.set_defaults(func=_cmd_annotate_demo)
 
 
@@ -111,7 +112,7 @@ def _cmd_annotate_demo(args) -> int:
 
     out = Path(args.out)
     source = demo_hand("source_human", resolution=args.source_resolution)
-    for name in DEMO_HANDS:
+    for name in args.hand or DEMO_HANDS:
         target = demo_hand(name, resolution=args.resolution)
         path = out / f"{name}.json"
         save_annotations(propose_annotations(source, target), path)

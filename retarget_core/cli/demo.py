@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import _fmt_mm, _run_retarget
+from .common import _UsageError, _fmt_mm, _run_retarget
 from .transfer import _transfer_table
 
 
@@ -14,6 +14,7 @@ def add_commands(sub) -> None:
     demo.add_argument("--resolution", type=float, default=0.003, help="demo hands' mesh cell size in metres")
     demo.add_argument("--clip", action="append", help="only this demo clip (repeatable)")
     demo.add_argument("--time-scale", type=float, default=1.0, help="shorten (<1) the demo clips")
+    demo.add_argument("--hand", action="append", help="only this demo hand (repeatable; default: every one)")
     demo.set_defaults(func=_cmd_demo)
 
 
@@ -24,7 +25,14 @@ def _cmd_demo(args) -> int:
     of a clip onto every demo hand (USD animation, result and joint JSON, summary table)."""
     out = Path(args.out)
     print(f"== demo hand library -> {out / 'rigs'}")
-    _step("rig", "demo", "--out", out / "rigs", "--resolution", args.resolution)
+    from ..rig.demo_hands import DEMO_HANDS
+
+    unknown = sorted(set(args.hand or ()) - set(DEMO_HANDS))
+    if unknown:
+        raise _UsageError(f"no demo hand {', '.join(unknown)} (the demo hands: {', '.join(DEMO_HANDS)})")
+    hands = args.hand or list(DEMO_HANDS)
+    only = [a for h in hands for a in ("--hand", h)]
+    _step("rig", "demo", "--out", out / "rigs", "--resolution", args.resolution, *only)
     print(f"\n== demonstration clips -> {out / 'clips'}")
     _step("clip", "demo", "--out", out / "clips", "--time-scale", args.time_scale, "--resolution", 0.004,
           *[a for c in args.clip or () for a in ("--clip", c)])
@@ -37,20 +45,24 @@ def _cmd_demo(args) -> int:
               "--size", "320x320")
     print(f"\n== annotations -> {out / 'annotations'}")
     _step("annotate", "demo", "--out", out / "annotations", "--resolution", args.resolution,
-          "--source-resolution", 0.004)
+          "--source-resolution", 0.004, *only)
     print(f"\n== contact transfer onto every demo hand -> {out / 'transfer'}")
     from ..clip import load_clip
     from ..pairing import load_contact_pairs
-    from ..rig.demo_hands import DEMO_HANDS, demo_hand
+    from ..rig.demo_hands import demo_hand
     from ..transfer.annotations import load_annotations
 
     jobs = [(c.stem, load_clip(c), load_contact_pairs(c.with_name(c.stem + ".pairs.npz")), c) for c in clips]
-    for name in DEMO_HANDS:
+    from ..solve.config import load_config
+
+    keep_patch_size = load_config(None, "default").contacts.keep_patch_size  # the transfer the retarget makes
+    for name in hands:
         print(f"-- {name}")
         _transfer_table(jobs, None, demo_hand(name, resolution=args.resolution),
-                        load_annotations(out / "annotations" / f"{name}.json"), out / "transfer" / name, None)
+                        load_annotations(out / "annotations" / f"{name}.json"), out / "transfer" / name, None,
+                        keep_patch_size)
     print(f"\n== retarget one second of {RETARGET_DEMO_CLIP} onto every demo hand -> {out / 'retarget'}")
-    _retarget_demo(out, args.resolution, args.time_scale)
+    _retarget_demo(out, args.resolution, args.time_scale, hands)
     return 0
 
 
@@ -72,8 +84,8 @@ RETARGET_DEMO_CLIP = "bottle_pick_place"
 RETARGET_DEMO_FRAMES = 120
 
 
-def _retarget_demo(out: Path, resolution: float, time_scale: float) -> None:
-    """Retarget a short window of the demo clip onto every demo hand with the proposed
+def _retarget_demo(out: Path, resolution: float, time_scale: float, hands) -> None:
+    """Retarget a short window of the demo clip onto each demo hand in ``hands`` with the proposed
     annotations (``out/annotations``) and the default preset; write ``out/retarget/<hand>/``
     and a summary table (``out/retarget/summary.md``)."""
     from ..clip import load_clip
@@ -81,7 +93,7 @@ def _retarget_demo(out: Path, resolution: float, time_scale: float) -> None:
     from ..execute import Executor, default_workers
     from ..inputs import RunInputs
     from ..pairing import pair_contacts
-    from ..rig.demo_hands import DEMO_HANDS, demo_hand
+    from ..rig.demo_hands import demo_hand
     from ..solve.config import load_config
     from ..transfer.annotations import load_annotations
 
@@ -97,7 +109,7 @@ def _retarget_demo(out: Path, resolution: float, time_scale: float) -> None:
             "|---|---:|---:|---:|---:|---:|---|"]
     pictures = []
     pairs = pair_contacts(clip)  # the same clip for every hand: pair it once
-    for name in DEMO_HANDS:
+    for name in hands:
         print(f"-- {name}")
         inputs = RunInputs.of(clip, source, demo_hand(name, resolution=resolution),
                               load_annotations(out / "annotations" / f"{name}.json"),
