@@ -14,6 +14,7 @@ same DOF values.
 
 from __future__ import annotations
 
+import copy
 import logging
 import subprocess
 import time
@@ -73,6 +74,7 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
     if pairs is not None and len(pairs.frame_offsets) != clip.n_frames + 1:
         raise InputError(f"the given contact pairs have {len(pairs.frame_offsets) - 1} frames, the clip "
                          f"{clip.n_frames}", element="pairs")
+    config, source_depth = collision_for_source_depth(clip, config)
     timings = {"validation": time.perf_counter() - start}
     client = executor.connect()  # an unreachable scheduler is reported before any work
     # one BLAS / OpenMP thread here and in the workers forked from here (see build_solver_state)
@@ -196,6 +198,10 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
                               if len(transferred.contacts.dropped) else 1.0),
         "unmapped_contacts": int(transferred.contacts.unmapped.sum()) if transferred.contacts.unmapped is not None else 0,
         "seconds": timings["total"],
+        # the clip's own hand inside its object (contacts.source_depth_limit): None when not measured
+        "source_depth_max_mm": None if source_depth is None else source_depth["max_mm"],
+        "penetration_term": ("on" if config.weights.lambda_p > 0 else "off") if source_depth is None
+        else source_depth["penetration_term"],
     }
     if summary["unmapped_contacts"]:
         logger.warning("%d of %d source contacts lie where no log-map chart of the source hand is one-to-one "
@@ -216,6 +222,32 @@ def retarget(inputs: RunInputs, config: RetargetConfig, executor: Executor | Non
         table_pose=clip.table_pose, table_half_extents=clip.table_half_extents, contacts=contacts,
         source_contact_count=np.diff(pairs.frame_offsets),
         source_hand=_source_snapshots(clip, np.diff(pairs.frame_offsets)))
+
+
+def collision_for_source_depth(clip: Clip, config: RetargetConfig) -> tuple[RetargetConfig, dict | None]:
+    """The run's configuration with the hand-object penetration term on when the clip's own
+    hand lies deeper than ``contacts.source_depth_limit`` inside the object in some frame and
+    ``weights.lambda_p`` is 0 (:class:`~retarget_core.solve.config.Contacts`); and what was
+    measured: {"max_mm", "frames" (over the limit), "penetration_term"} (None when not measured)."""
+    from .clip.substitute import hand_depth_per_frame
+    from .solve.config import COLLISION_WEIGHTS
+
+    limit = config.contacts.source_depth_limit_si
+    if limit <= 0 or config.weights.lambda_p > 0 or clip.object_vertices is None:
+        return config, None
+    depth = hand_depth_per_frame(clip, clip.object_vertices, clip.object_faces)
+    over = np.nonzero(depth > limit)[0]
+    found = {"max_mm": float(1000.0 * depth.max()), "frames": int(len(over)), "penetration_term": "off"}
+    if not len(over):
+        return config, found
+    effective = copy.deepcopy(config)
+    effective.weights.lambda_p = COLLISION_WEIGHTS["lambda_p"]
+    found["penetration_term"] = (
+        f"on (weights.lambda_p = {effective.weights.lambda_p:g}): the clip's hand lies up to {found['max_mm']:.1f} mm "
+        f"inside the object in {len(over)} frames (from frame {over[0]}), deeper than contacts.source_depth_limit = "
+        f"{config.contacts.source_depth_limit:g} cm; set weights.lambda_p to choose the term yourself")
+    logger.warning("penetration term %s", found["penetration_term"])
+    return effective, found
 
 
 def check_inputs(clip: Clip, source: Rig, target: Rig, annotations, config: RetargetConfig, *,

@@ -66,6 +66,8 @@ def _cmd_retarget(args) -> int:
         print(f"  note: {s['unmapped_contacts']} source contacts lie where no log-map chart of the source hand is "
               "one-to-one (a mesh too coarse there for geodesics, e.g. a fingertip of a few triangles): dropped, "
               "not guessed; `handretarget transfer` shows them per curve")
+    if s.get("penetration_term", "").startswith("on ("):
+        print(f"  note: penetration term {s['penetration_term']}")
     for line in result.provenance.get("annotation_remap", {}).get("lines", []):
         print(f"  annotations: {line}")
     for key, v in result.unused_settings.items():
