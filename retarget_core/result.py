@@ -193,7 +193,7 @@ class RetargetResult:
         from .render.preview import result_scene, write_pictures
 
         source = self.provenance.get("inputs", {}).get("source_rig", {})
-        source_name = source.get("name") or Path(str(source.get("spec") or source.get("path") or "source")).stem
+        source_name = source.get("name") or Path(str(source.get("spec") or source.get("path") or "source")).name
         scene = result_scene(
             rig if rig is not None else self.rig, self.sampled(), self.fps, object_vertices=self.object_vertices, object_faces=self.object_faces,
             object_poses=self.object_poses, contacts=self.contacts, contact_count=self.source_contact_count,

@@ -81,8 +81,9 @@ def _cmd_retarget(args) -> int:
     if "pictures.json" in paths:
         pictures = json.loads(Path(paths["pictures.json"]).read_text(encoding="utf-8"))
         share = pictures["contacts_unoccluded_share"]
-        print(f"  pictures: seen from {pictures['view_direction']} (towards the eye), "
-              + (f"{100 * share:.0f} % of the sheet's {pictures['contacts_in_sheet']} contact points unoccluded"
+        views = " and ".join(str(v["direction"]) for v in pictures["views"])
+        print(f"  pictures: seen from {views} (towards the eye), "
+              + (f"{100 * share:.0f} % of the sheet's {pictures['contacts_in_sheet']} target contact points unoccluded"
                  if pictures["contacts_in_sheet"] else "no contacts in the sheet's frames"))
     for path in paths.values():
         print(f"wrote {path}")
