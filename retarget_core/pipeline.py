@@ -246,7 +246,7 @@ def collision_for_source_depth(clip: Clip, config: RetargetConfig) -> tuple[Reta
         f"on (weights.lambda_p = {effective.weights.lambda_p:g}): the clip's hand lies up to {found['max_mm']:.1f} mm "
         f"inside the object in {len(over)} frames (from frame {over[0]}), deeper than contacts.source_depth_limit = "
         f"{config.contacts.source_depth_limit:g} cm; set weights.lambda_p to choose the term yourself")
-    logger.warning("penetration term %s", found["penetration_term"])
+    logger.info("penetration term %s", found["penetration_term"])  # the summary and `retarget` say it
     return effective, found
 
 
