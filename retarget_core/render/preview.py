@@ -282,7 +282,9 @@ def _render_side(scene: PictureScene, f: int, side: str, camera: Camera, size: i
         xy = camera.project(points, (size * k, size * k)) / k
         draw = ImageDraw.Draw(tile)
         for (x, y), c in zip(xy[visible], colours[visible]):
-            draw.ellipse([x - dot, y - dot, x + dot, y + dot], fill=tuple(int(v) for v in c), outline=(30, 30, 30))
+            # an outline only where the dot is big enough to keep its colour inside it
+            draw.ellipse([x - dot, y - dot, x + dot, y + dot], fill=tuple(int(v) for v in c),
+                         outline=(30, 30, 30) if dot >= 4 else None)
     return tile, errors
 
 
@@ -362,7 +364,7 @@ def write_preview(scene: PictureScene, path, frames, directions, *, tile: int = 
         canvas = Image.new("RGB", (2 * tile, band + tile * len(cameras)), BACKGROUND)
         for v, camera in enumerate(cameras):
             for i, side in enumerate(("source", "target")):
-                image, _ = _render_side(scene, f, side, camera, tile, 1, dot=2, table=table)
+                image, _ = _render_side(scene, f, side, camera, tile, 1, dot=3, table=table)
                 canvas.paste(image, (i * tile, band + v * tile))
         draw = ImageDraw.Draw(canvas)
         draw.text((6, 3), f"source   frame {f}  {f / scene.fps:.2f} s", fill=(0, 0, 0), font=_font(12))
