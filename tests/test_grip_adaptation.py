@@ -43,8 +43,8 @@ def _run(setup, sx, sy, tmp_path, **overrides):
     source, target, clip, annotations = setup
     new, report = substitute_object(clip, _thicker(clip.object_vertices, sx, sy), clip.object_faces,
                                     transform=np.eye(4), allow_intersection=True)
-    result = retarget(RunInputs.of(new, source, target, annotations), load_config(None, "default", {**FAST, **overrides}),
-                      Executor(workers=1))
+    config = load_config(None, "default", {**FAST, **overrides})
+    result = retarget(RunInputs.of(new, source, target, annotations), config, Executor(workers=1))
     result.write(tmp_path, pictures=False)
     write_evaluation(tmp_path, stride=2, render=False)
     return result, report, json.loads((tmp_path / "metrics.json").read_text())["summary"]

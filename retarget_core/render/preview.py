@@ -28,7 +28,17 @@ import numpy as np
 from ..errors import InputError
 from ..files import atomic_path
 from ..mesh.surface_points import SurfacePoints
-from .raster import BACKGROUND, OBJECT_BLUE, SKIN, TABLE_WOOD, Camera, box_mesh, depth_buffer, frame_camera, render_meshes
+from .raster import (
+    BACKGROUND,
+    OBJECT_BLUE,
+    SKIN,
+    TABLE_WOOD,
+    Camera,
+    box_mesh,
+    depth_buffer,
+    frame_camera,
+    render_meshes,
+)
 
 #: the preview's frame rate (Hz) when the clip's allows it, and its most frames (longer clips play
 #: at a lower rate, still in real time)
@@ -160,17 +170,17 @@ def unoccluded(points, depth: np.ndarray, camera: Camera, tolerance: float = VIS
     return out
 
 
-def _frame_layers(scene: PictureScene, f: int, table=None):
-    """For one frame: [(opaque meshes, contact points (N, 3), side)] for the source (when stored)
-    and the target, with ``table`` (a mesh or None); the source's contacts are the object points
-    it touches."""
+def _frame_layers(scene: PictureScene, f: int, table=None) -> dict:
+    """One frame's sides: {side: (opaque meshes, contact points (N, 3), object points (N, 3))}
+    for the source (when stored) and the target, with ``table`` (a mesh or None). The source's
+    contacts are the object points it touches; the target's are its hand's contact points."""
     hand_points, object_points = scene.target_contacts(f)
-    layers = []
+    extra = [table] if table else []
+    layers = {}
     source = scene.source_at(f)
     if source is not None:
-        layers.append(([(source, scene.source_faces, SKIN)] + ([table] if table else []), object_points, "source"))
-    layers.append(([(scene.target_vertices(f), scene.target_faces, SKIN)] + ([table] if table else []), hand_points,
-                   "target"))
+        layers["source"] = ([(source, scene.source_faces, SKIN)] + extra, object_points, object_points)
+    layers["target"] = ([(scene.target_vertices(f), scene.target_faces, SKIN)] + extra, hand_points, object_points)
     return layers
 
 
@@ -188,8 +198,8 @@ def choose_views(scene: PictureScene, frames, size: int = 96) -> tuple[list, dic
     ``frames`` at ``size`` pixels: the cameras that measured it)}."""
     framing = _framing_points(scene, frames)
     table = scene.table_mesh(framing)
-    layers = [(opaque, points, side) for f in frames for opaque, points, side in _frame_layers(scene, f, table)
-              if len(points)]
+    layers = [(opaque, points, side) for f in frames
+              for side, (opaque, points, _) in _frame_layers(scene, f, table).items() if len(points)]
     cameras, seen = [], {"source": [], "target": []}
     for direction in VIEW_DIRECTIONS:
         camera = frame_camera(framing, view=direction, size=(size, size))
@@ -255,18 +265,17 @@ def _tile(opaque, ghost, camera: Camera, size: int, supersample: int):
     return np.clip(np.rint(image), 0, 255).astype(np.uint8), depth
 
 
-def _render_side(scene: PictureScene, f: int, side: str, camera: Camera, size: int, supersample: int, dot: int,
-                 table=None):
-    """A PIL image of one side of frame ``f`` with its visible contacts drawn; (image, errors
-    (N,) mm of the target's contacts or None)."""
+def _render_side(scene: PictureScene, f: int, layers: dict, side: str, camera: Camera, size: int, supersample: int,
+                 dot: int):
+    """A PIL image of one side of frame ``f`` (``layers``: :func:`_frame_layers` of that frame)
+    with its visible contacts drawn; (image, errors (N,) mm of the target's contacts or None)."""
     from PIL import Image, ImageDraw
 
-    layers = {s: (opaque, pts) for opaque, pts, s in _frame_layers(scene, f, table)}
     if side not in layers:
         tile = Image.new("RGB", (size, size), (240, 240, 240))
         ImageDraw.Draw(tile).text((8, size // 2 - 8), "source hand not stored", fill=(90, 90, 90), font=_font(12))
         return tile, None
-    opaque, points = layers[side]
+    opaque, points, goals = layers[side]
     obj = (scene.object_at(f), scene.object_faces, OBJECT_BLUE)
     pixels, depth = _tile(opaque, [obj], camera, size, supersample)
     tile = Image.fromarray(pixels)
@@ -275,7 +284,7 @@ def _render_side(scene: PictureScene, f: int, side: str, camera: Camera, size: i
         k = max(int(supersample), 1)
         visible = unoccluded(points, depth, camera)
         if side == "target":
-            errors = 1000.0 * np.linalg.norm(points - scene.target_contacts(f)[1], axis=1)
+            errors = 1000.0 * np.linalg.norm(points - goals, axis=1)
             colours = error_colour(errors)
         else:
             colours = np.tile(np.array(SOURCE_DOT, dtype=np.uint8), (len(points), 1))
@@ -317,9 +326,10 @@ def write_contact_sheet(scene: PictureScene, path, frames, directions, *, tile: 
     for r, f in enumerate(frames):
         top = head_h + col_h + r * tile
         errors = None
+        layers = _frame_layers(scene, int(f), table)
         for v, camera in enumerate(cameras):
             for i, side in enumerate(("source", "target")):
-                image, e = _render_side(scene, int(f), side, camera, tile, supersample, dot=4, table=table)
+                image, e = _render_side(scene, int(f), layers, side, camera, tile, supersample, dot=4)
                 sheet.paste(image, (label_w + (2 * v + i) * tile, top))
                 errors = e if e is not None else errors
         lines = [f"frame {int(f)}", f"{f / scene.fps:.2f} s"]
@@ -362,9 +372,10 @@ def write_preview(scene: PictureScene, path, frames, directions, *, tile: int = 
     pictures = []
     for f in frames:
         canvas = Image.new("RGB", (2 * tile, band + tile * len(cameras)), BACKGROUND)
+        layers = _frame_layers(scene, f, table)
         for v, camera in enumerate(cameras):
             for i, side in enumerate(("source", "target")):
-                image, _ = _render_side(scene, f, side, camera, tile, 1, dot=3, table=table)
+                image, _ = _render_side(scene, f, layers, side, camera, tile, 1, dot=3)
                 canvas.paste(image, (i * tile, band + v * tile))
         draw = ImageDraw.Draw(canvas)
         draw.text((6, 3), f"source   frame {f}  {f / scene.fps:.2f} s", fill=(0, 0, 0), font=_font(12))
