@@ -200,15 +200,14 @@ def choose_views(scene: PictureScene, frames, size: int = 96) -> tuple[list, dic
     table = scene.table_mesh(framing)
     layers = [(opaque, points, side) for f in frames
               for side, (opaque, points, _) in _frame_layers(scene, f, table).items() if len(points)]
-    cameras, seen = [], {"source": [], "target": []}
-    for direction in VIEW_DIRECTIONS:
-        camera = frame_camera(framing, view=direction, size=(size, size))
-        cameras.append(camera)
-        for side in seen:
-            seen[side].append(np.concatenate([np.zeros(0, bool)] + [
-                unoccluded(points, depth_buffer(opaque, camera, (size, size)), camera)
-                for opaque, points, s in layers if s == side]))
-    target, source = np.array(seen["target"]), np.array(seen["source"])  # (directions, contacts)
+    cameras = [frame_camera(framing, view=direction, size=(size, size)) for direction in VIEW_DIRECTIONS]
+
+    def seen_from(camera, side):  # (contacts,) bool: the side's contact points this camera sees
+        return np.concatenate([np.zeros(0, bool)] + [
+            unoccluded(points, depth_buffer(opaque, camera, (size, size)), camera)
+            for opaque, points, s in layers if s == side])
+
+    target = np.array([seen_from(camera, "target") for camera in cameras])  # (directions, contacts)
     closeness = VIEW_DIRECTIONS @ _THREE_QUARTER
 
     def share(mask):
@@ -223,8 +222,9 @@ def choose_views(scene: PictureScene, frames, size: int = 96) -> tuple[list, dic
         second = best(target | target[chosen[0]])
         if (target[second] & ~target[chosen[0]]).mean() >= SECOND_VIEW_GAIN:
             chosen.append(second)
+    source = np.array([seen_from(cameras[c], "source") for c in chosen])  # reported only
     info = {"target_share": share(np.any(target[chosen], axis=0)),
-            "source_share": share(np.any(source[chosen], axis=0)),
+            "source_share": share(np.any(source, axis=0)),
             "view_shares": [share(target[c]) for c in chosen],
             "contacts": int(target.shape[1]), "cameras": [cameras[c] for c in chosen]}
     info["share"] = info["target_share"] or 0.0
@@ -250,13 +250,21 @@ def _font(size: int):
         return ImageFont.load_default()
 
 
+def _ghost(scene: PictureScene, f: int, camera: Camera, size: int, supersample: int):
+    """The translucent object of frame ``f``: (image, depth) at the supersampled resolution, drawn
+    once per frame and view for both sides."""
+    k = max(int(supersample), 1)
+    obj = (scene.object_at(f), scene.object_faces, OBJECT_BLUE)
+    return render_meshes([obj], camera, (size * k, size * k), return_depth=True)
+
+
 def _tile(opaque, ghost, camera: Camera, size: int, supersample: int):
-    """One view: the opaque meshes with the ghost meshes blended over where they are nearer.
+    """One view: the opaque meshes with the ghost (:func:`_ghost`) blended over where it is nearer.
     Returns (H, W, 3) uint8 and the opaque depth (H*k, W*k) at the supersampled resolution."""
     k = max(int(supersample), 1)
     big = (size * k, size * k)
     image, depth = render_meshes(opaque, camera, big, return_depth=True)
-    over, ghost_depth = render_meshes(ghost, camera, big, return_depth=True)
+    over, ghost_depth = ghost
     image = image.astype(np.float64)
     front = ghost_depth < depth
     image[front] = (1.0 - GHOST_ALPHA) * image[front] + GHOST_ALPHA * over[front]
@@ -265,10 +273,10 @@ def _tile(opaque, ghost, camera: Camera, size: int, supersample: int):
     return np.clip(np.rint(image), 0, 255).astype(np.uint8), depth
 
 
-def _render_side(scene: PictureScene, f: int, layers: dict, side: str, camera: Camera, size: int, supersample: int,
-                 dot: int):
-    """A PIL image of one side of frame ``f`` (``layers``: :func:`_frame_layers` of that frame)
-    with its visible contacts drawn; (image, errors (N,) mm of the target's contacts or None)."""
+def _render_side(layers: dict, ghost, side: str, camera: Camera, size: int, supersample: int, dot: int):
+    """A PIL image of one side of a frame (``layers``: :func:`_frame_layers` of that frame,
+    ``ghost``: its object, :func:`_ghost`) with its visible contacts drawn; (image, errors (N,) mm
+    of the target's contacts or None)."""
     from PIL import Image, ImageDraw
 
     if side not in layers:
@@ -276,8 +284,7 @@ def _render_side(scene: PictureScene, f: int, layers: dict, side: str, camera: C
         ImageDraw.Draw(tile).text((8, size // 2 - 8), "source hand not stored", fill=(90, 90, 90), font=_font(12))
         return tile, None
     opaque, points, goals = layers[side]
-    obj = (scene.object_at(f), scene.object_faces, OBJECT_BLUE)
-    pixels, depth = _tile(opaque, [obj], camera, size, supersample)
+    pixels, depth = _tile(opaque, ghost, camera, size, supersample)
     tile = Image.fromarray(pixels)
     errors = None
     if len(points):
@@ -328,8 +335,9 @@ def write_contact_sheet(scene: PictureScene, path, frames, directions, *, tile: 
         errors = None
         layers = _frame_layers(scene, int(f), table)
         for v, camera in enumerate(cameras):
+            ghost = _ghost(scene, int(f), camera, tile, supersample)
             for i, side in enumerate(("source", "target")):
-                image, e = _render_side(scene, int(f), layers, side, camera, tile, supersample, dot=4)
+                image, e = _render_side(layers, ghost, side, camera, tile, supersample, dot=4)
                 sheet.paste(image, (label_w + (2 * v + i) * tile, top))
                 errors = e if e is not None else errors
         lines = [f"frame {int(f)}", f"{f / scene.fps:.2f} s"]
@@ -374,8 +382,9 @@ def write_preview(scene: PictureScene, path, frames, directions, *, tile: int = 
         canvas = Image.new("RGB", (2 * tile, band + tile * len(cameras)), BACKGROUND)
         layers = _frame_layers(scene, f, table)
         for v, camera in enumerate(cameras):
+            ghost = _ghost(scene, f, camera, tile, 1)
             for i, side in enumerate(("source", "target")):
-                image, _ = _render_side(scene, f, layers, side, camera, tile, 1, dot=3)
+                image, _ = _render_side(layers, ghost, side, camera, tile, 1, dot=3)
                 canvas.paste(image, (i * tile, band + v * tile))
         draw = ImageDraw.Draw(canvas)
         draw.text((6, 3), f"source   frame {f}  {f / scene.fps:.2f} s", fill=(0, 0, 0), font=_font(12))
