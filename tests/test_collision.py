@@ -97,32 +97,62 @@ def test_grid_gradient_is_the_interpolants_own(sphere_grid, rng):
     assert np.allclose(g, fd, atol=1e-5)
 
 
-def test_node_bound_culls_only_what_cannot_read_below(sphere_grid, rng):
-    """SdfGrids.node_values (one gather) is within node_reach of query() wherever the grid
-    reads, node_reach is the bound for exact distances (1.121 spacing, the slope measured on
-    the nodes), and maybe_below keeps every point query() puts below the level, on one grid
-    and with per-point grid ids."""
-    h = float(sphere_grid.spacing[0])
-    assert sphere_grid.node_reach[0] == pytest.approx(1.121 * h, rel=0.05)
-    p = rng.uniform(-0.027, 0.027, size=(20000, 3))  # inside, near and beyond the grid's box
-    d, _ = sphere_grid.query(p)
-    n = sphere_grid.node_values(p)
-    assert np.array_equal(d == FAR, n == FAR)
-    assert np.abs(d - n)[d < FAR].max() <= sphere_grid.node_reach[0]
-    # at the nodes themselves the two agree exactly
-    nodes = sphere_grid.origins[0] + h * rng.integers(1, sphere_grid.shapes[0] - 2, size=(100, 3))
-    np.testing.assert_allclose(sphere_grid.node_values(nodes), sphere_grid.query(nodes)[0], atol=1e-12)
-    for level in (-0.01, 0.0, 0.003, 0.02):
-        kept = sphere_grid.maybe_below(p, level)
-        assert set(np.flatnonzero(d < level)) <= set(kept.tolist())
-        assert len(kept) < len(p)  # it does cull
-    two = SdfGrids(np.concatenate([sphere_grid.values, sphere_grid.values + 0.01]),
+def _rigid(rng, shift):
+    """A random rigid transform (4, 4) moving by ``shift`` (3,) m."""
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    t = np.eye(4)
+    t[:3, :3] = q * np.sign(np.linalg.det(q))
+    t[:3, 3] = shift
+    return t
+
+
+def test_queries_in_other_frames_read_the_moved_sphere(sphere_grid, rng):
+    """query_in reads a grid through a map into its frame: a sphere moved by a rigid transform T
+    reads |x - centre| - r at world points x (the grid's frame is T^-1 of the world) with the
+    world gradient pointing away from the centre; below_in keeps exactly the points query_in
+    puts below the level; pairs_below finds every (point, grid) pair below the level (checked
+    pair by pair with query_in), grid by grid and points ascending, and skips nothing inside
+    its spheres. Per-point grid ids and NaN points (read FAR) included."""
+    two = SdfGrids(np.concatenate([sphere_grid.values, sphere_grid.values + 0.005]),
                    np.array([0, sphere_grid.values.size]), np.repeat(sphere_grid.shapes, 2, axis=0),
                    np.repeat(sphere_grid.origins, 2, axis=0), np.repeat(sphere_grid.spacing, 2))
-    ids = rng.integers(0, 2, size=len(p))
-    d2, _ = two.query(p, ids)
-    assert set(np.flatnonzero(d2 < 0.0)) <= set(two.maybe_below(p, 0.0, ids).tolist())
-    np.testing.assert_allclose(d2[ids == 1], np.where(d[ids == 1] < FAR, d[ids == 1] + 0.01, FAR))
+    moved = [_rigid(rng, (0.01, -0.02, 0.03)), _rigid(rng, (-0.015, 0.0, 0.01))]
+    frames = np.linalg.inv(np.stack(moved))  # world -> each grid's frame
+    centres = np.stack([m[:3, 3] for m in moved])
+    x = rng.normal(size=(3000, 3))
+    ids = rng.integers(0, 2, size=len(x))
+    x = centres[ids] + x / np.linalg.norm(x, axis=1, keepdims=True) * rng.uniform(0.005, 0.024, size=(len(x), 1))
+    x[7] = np.nan
+    d, g = two.query_in(frames, x, ids)
+    gap = np.linalg.norm(x - centres[ids], axis=1)
+    exact = gap - 0.02 + 0.005 * ids
+    ok = np.isfinite(gap)
+    assert np.abs(d[ok] - exact[ok]).max() < 1e-4 and d[7] == FAR and not g[7].any()
+    radial = (x - centres[ids]) / gap[:, None]
+    far = ok & (gap > 0.012)  # nearer the centre the 1 mm cells turn the gradient more
+    assert np.einsum("ij,ij->i", g[far], radial[far]).min() > 0.95
+    # the same as moving the points into each grid's frame by hand and querying there
+    local = np.einsum("kab,kb->ka", frames[ids, :3, :3], x) + frames[ids, :3, 3]
+    d_local, g_local = two.query(local, ids)
+    np.testing.assert_allclose(d[ok], d_local[ok], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(g[ok], np.einsum("kba,kb->ka", frames[ids, :3, :3], g_local)[ok], rtol=0, atol=1e-12)
+    for level in (-0.01, 0.0, 0.003):
+        kept, d_kept = two.below_in(frames, x, ids, level)
+        np.testing.assert_array_equal(kept, np.flatnonzero(d < level))
+        np.testing.assert_array_equal(d_kept, d[kept])
+    # every point against both grids: what pairs_below finds is what reading each pair finds
+    pts = x[ok]
+    p, gi, dp = two.pairs_below(frames, pts, centres, np.full(2, 0.05), 0.0)
+    found = set(zip(p.tolist(), gi.tolist()))
+    expected = {(k, grid) for grid in (0, 1)
+                for k in np.flatnonzero(two.query_in(frames, pts, grid, gradient=False)[0] < 0.0).tolist()}
+    assert found == expected and len(found) > 500
+    assert np.all(np.diff(gi) >= 0) and all(np.all(np.diff(p[gi == k]) > 0) for k in (0, 1))
+    np.testing.assert_allclose(dp, two.query_in(frames, pts[p], gi, gradient=False)[0], rtol=0, atol=0)
+    # a sphere too small to hold a grid's inside skips those pairs: nothing beyond it is read
+    p_small, _, _ = two.pairs_below(frames, pts, centres, np.array([0.01, 0.0]), 0.0)
+    assert 0 < len(p_small) < len(p)
+    assert np.all(np.linalg.norm(pts[p_small] - centres[0], axis=1) <= 0.01)
 
 
 @pytest.fixture(scope="module")
@@ -313,7 +343,9 @@ def test_object_in_hand_focus_keeps_exactly_the_near_items(hand, rng):
     def every_item(pose, place):
         y = term.points @ place[:3, :3].T + place[:3, 3]
         p, g = np.divmod(np.arange(len(y) * n_grids), n_grids)
-        d, _ = term.grids.query(term._local(pose, y[p], g), g)
+        world = pose.world[term.part_joint[g]]  # each item's point into its part's frame, by hand
+        local = np.einsum("kba,kb->ka", world[:, :3, :3], y[p] - world[:, :3, 3])
+        d, _ = term.grids.query(local, g)
         return p, g, d
 
     seen = 0

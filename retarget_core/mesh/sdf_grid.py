@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+from numba import njit
 
 
 #: Distance read outside a grid (m): far enough that no penalty acts there.
@@ -92,109 +93,166 @@ class SdfGrids:
 
     @cached_property
     def _tables(self):
-        """Per grid, what every query needs: 1 / spacing (G,), the last cell index (G, 3),
-        the C-order strides (G, 3) and the flat offsets of a cell's 8 corners (G, 8), x-major
-        (dx * sx + dy * sy + dz). Built once per process (a query is called thousands of times
-        per frame solve on a few points each: per-call work dominates)."""
-        shapes = self.shapes.astype(np.int64)
-        strides = np.stack([shapes[:, 1] * shapes[:, 2], shapes[:, 2], np.ones(len(shapes), np.int64)], axis=1)
-        corners = np.stack([dx * strides[:, 0] + dy * strides[:, 1] + dz
-                            for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)], axis=1)
-        return 1.0 / self.spacing, (shapes - 2).astype(np.float64), strides, corners
+        """What every query needs, as contiguous arrays for the compiled kernels: the values
+        (N,), offsets (G,), shapes (G, 3) int64, origins (G, 3) m, 1 / spacing (G,)."""
+        return (np.ascontiguousarray(self.values, dtype=np.float64), self.offsets.astype(np.int64),
+                np.ascontiguousarray(self.shapes, dtype=np.int64), np.ascontiguousarray(self.origins, dtype=np.float64),
+                1.0 / np.asarray(self.spacing, dtype=np.float64))
 
-    def _cells(self, p: np.ndarray, grid):
-        """The grid ids (int or (P,)), the points (P, 3) in node units, their cells (P, 3) and
-        the ids of the points inside their grid (the others read FAR)."""
-        inv_h, last, _, _ = self._tables
+    def _grid_ids(self, grid, n: int) -> np.ndarray:
         g = np.asarray(grid, dtype=np.int64)
-        u = (p - self.origins[g]) * (inv_h[g][:, None] if g.ndim else inv_h[g])
-        cell = np.floor(u)
-        return g, u, cell, np.flatnonzero(((cell >= 0) & (cell <= last[g])).all(axis=1))
+        return np.full(n, int(g)) if g.ndim == 0 else np.ascontiguousarray(g)
 
     def query(self, points: np.ndarray, grid: np.ndarray | int = 0):
         """Trilinear signed distance (P,) m and its gradient (P, 3) at points (P, 3) given in
         the frame of grid ``grid`` (an int or (P,) ids). Outside the grid: FAR and 0."""
-        p = np.asarray(points, dtype=np.float64)
-        d = np.full(len(p), FAR)
-        grad = np.zeros((len(p), 3))
-        if not len(p):
-            return d, grad
-        inv_h, _, strides, corners = self._tables
-        g, u, cell, keep = self._cells(p, grid)
-        if not len(keep):
-            return d, grad
-        c = cell[keep]
-        if g.ndim:
-            gk = g[keep]
-            first = self.offsets[gk] + np.einsum("ka,ka->k", c.astype(np.int64), strides[gk])
-            v = self.values[first[:, None] + corners[gk]]
-            scale = inv_h[gk][:, None]
-        else:
-            first = self.offsets[g] + c.astype(np.int64) @ strides[g]
-            v = self.values[first[:, None] + corners[g]]
-            scale = inv_h[g]
-        t = u[keep] - c
-        v000, v001, v010, v011, v100, v101, v110, v111 = v.T
-        tx, ty, tz = t.T
-        # along x, then y, then z; the gradient is the interpolant's own (exact for it)
-        dx00, dx10, dx01, dx11 = v100 - v000, v110 - v010, v101 - v001, v111 - v011
-        x00, x10 = v000 + tx * dx00, v010 + tx * dx10
-        x01, x11 = v001 + tx * dx01, v011 + tx * dx11
-        y0, y1 = x00 + ty * (x10 - x00), x01 + ty * (x11 - x01)
-        d[keep] = y0 + tz * (y1 - y0)
+        p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        return _query(*self._tables, _IDENTITY, p, self._grid_ids(grid, len(p)), True)
+
+    def query_in(self, frames: np.ndarray, points: np.ndarray, grid: np.ndarray | int = 0, gradient: bool = True):
+        """As :meth:`query` for points (P, 3) given in another frame: ``frames`` (G, 3, 4)
+        per grid, the map [A | b] from that frame into the grid's (x_grid = A x + b). The
+        gradient (P, 3) is in the points' frame (A^T of the grid's); None without
+        ``gradient``. One compiled pass: no (P, 3) copy per frame."""
+        p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        d, g = _query(*self._tables, _frames(frames), p, self._grid_ids(grid, len(p)), bool(gradient))
+        return d, (g if gradient else None)
+
+    def below_in(self, frames: np.ndarray, points: np.ndarray, grid: np.ndarray | int, level: float):
+        """(ids (K,), distances (K,) m) of the points (P, 3) (in the frame ``frames`` maps from,
+        see :meth:`query_in`) reading below ``level`` m, ids ascending."""
+        d, _ = self.query_in(frames, points, grid, gradient=False)
+        ids = np.flatnonzero(d < level)
+        return ids, d[ids]
+
+    def pairs_below(self, frames: np.ndarray, points: np.ndarray, centres: np.ndarray, radii: np.ndarray,
+                    level: float):
+        """Every (point, grid) pair whose value is below ``level`` m: points (N, 3) in one frame,
+        ``frames`` (G, 3, 4) from it into each grid's; ``centres`` (G, 3) and ``radii`` (G,) m
+        bound each grid in the points' frame (beyond it a grid reads FAR). Returns (points (K,),
+        grids (K,), distances (K,) m), grid by grid, points ascending within a grid."""
+        p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        return _pairs_below(*self._tables, _frames(frames), p, np.ascontiguousarray(centres, dtype=np.float64),
+                            np.ascontiguousarray(radii, dtype=np.float64), float(level))
+
+
+# ---- compiled kernels ---------------------------------------------------------------------------
+# A solve queries a few hundred to a few tens of thousands of points per evaluation, tens of
+# thousands of times per run: as NumPy array expressions each query cost ~20 small temporaries
+# and their call overhead (the collision terms were 2.8x the run time, `handretarget bench
+# --collision`), so the trilinear read is one compiled loop. Plain IEEE arithmetic in a fixed
+# order (no fastmath): the same values on every machine and for any worker count.
+
+_IDENTITY = np.zeros((1, 3, 4))
+_IDENTITY[0, :, :3] = np.eye(3)
+
+
+def _frames(frames: np.ndarray) -> np.ndarray:
+    """(G, 3, 4) contiguous float64 maps from (G, 3, 4) or (G, 4, 4) transforms."""
+    f = np.asarray(frames, dtype=np.float64)
+    return np.ascontiguousarray(f[:, :3, :] if f.shape[-2] == 4 else f)
+
+
+@njit(cache=True, inline="always")
+def _trilinear(values, at, shape, origin, inv_h, x, y, z, out_g):
+    """The grid's trilinear value at (x, y, z) in its frame (FAR outside the last cell), its
+    gradient written to out_g (3,) when out_g has 3 entries (0 outside)."""
+    ux = (x - origin[0]) * inv_h
+    uy = (y - origin[1]) * inv_h
+    uz = (z - origin[2]) * inv_h
+    cx, cy, cz = np.floor(ux), np.floor(uy), np.floor(uz)
+    grad = out_g.shape[0] == 3
+    if (cx < 0.0 or cy < 0.0 or cz < 0.0 or cx > shape[0] - 2 or cy > shape[1] - 2 or cz > shape[2] - 2
+            or not (ux == ux and uy == uy and uz == uz)):
+        if grad:
+            out_g[0] = out_g[1] = out_g[2] = 0.0
+        return FAR
+    sy = shape[2]
+    sx = shape[1] * sy
+    first = at + int(cx) * sx + int(cy) * sy + int(cz)
+    v000, v001 = values[first], values[first + 1]
+    v010, v011 = values[first + sy], values[first + sy + 1]
+    v100, v101 = values[first + sx], values[first + sx + 1]
+    v110, v111 = values[first + sx + sy], values[first + sx + sy + 1]
+    tx, ty, tz = ux - cx, uy - cy, uz - cz
+    # along x, then y, then z; the gradient is the interpolant's own (exact for it)
+    dx00, dx10, dx01, dx11 = v100 - v000, v110 - v010, v101 - v001, v111 - v011
+    x00, x10 = v000 + tx * dx00, v010 + tx * dx10
+    x01, x11 = v001 + tx * dx01, v011 + tx * dx11
+    y0, y1 = x00 + ty * (x10 - x00), x01 + ty * (x11 - x01)
+    if grad:
         gx0 = dx00 + ty * (dx10 - dx00)
         gx1 = dx01 + ty * (dx11 - dx01)
-        out = np.empty((len(keep), 3))
-        out[:, 0] = gx0 + tz * (gx1 - gx0)
-        out[:, 1] = (1 - tz) * (x10 - x00) + tz * (x11 - x01)
-        out[:, 2] = y1 - y0
-        grad[keep] = out * scale
-        return d, grad
+        out_g[0] = (gx0 + tz * (gx1 - gx0)) * inv_h
+        out_g[1] = ((1 - tz) * (x10 - x00) + tz * (x11 - x01)) * inv_h
+        out_g[2] = (y1 - y0) * inv_h
+    return y0 + tz * (y1 - y0)
 
-    @cached_property
-    def node_reach(self) -> np.ndarray:
-        """Per grid (G,) m, how far :meth:`query` can read from :meth:`node_values` at the same
-        point. With L the largest slope of the node values between any two corners of a cell
-        (measured over the grid, about 1 for exact distances), a corner c differs from the
-        nearest corner n by at most L |c - n|, and the trilinear weights, worst at a cell's
-        centre, bound the mix by (3 + 3 sqrt 2 + sqrt 3) / 8 L h = 1.121 L h."""
-        steps = [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, -1, 0), (1, 0, 1), (1, 0, -1),
-                 (0, 1, 1), (0, 1, -1), (1, 1, 1), (1, 1, -1), (1, -1, 1), (-1, 1, 1)]
-        reach = np.empty(self.n_grids)
-        for g, (at, shape) in enumerate(zip(self.offsets, self.shapes)):
-            v = self.values[at:at + int(np.prod(shape))].reshape(shape)
-            slope = 0.0
-            for step in steps:
-                a = tuple(slice(max(0, -k), n - max(0, k)) for k, n in zip(step, v.shape))
-                b = tuple(slice(max(0, k), n - max(0, -k)) for k, n in zip(step, v.shape))
-                if v[a].size:
-                    slope = max(slope, float(np.abs(v[b] - v[a]).max()) / float(np.linalg.norm(step)))
-            reach[g] = (3 + 3 * 2 ** 0.5 + 3 ** 0.5) / 8 * slope  # slope is per node step: h is in it
-        return reach
 
-    def node_values(self, points: np.ndarray, grid: np.ndarray | int = 0) -> np.ndarray:
-        """The value (P,) m at the grid node nearest each point (P, 3) in grid ``grid``'s frame
-        (an int or (P,) ids); FAR where :meth:`query` reads FAR. One gather instead of eight:
-        the cheap bound for culling (see :meth:`maybe_below`)."""
-        p = np.asarray(points, dtype=np.float64)
-        d = np.full(len(p), FAR)
-        if not len(p):
-            return d
-        strides = self._tables[2]
-        g, u, _, keep = self._cells(p, grid)
-        if not len(keep):
-            return d
-        node = np.rint(u[keep]).astype(np.int64)  # a corner of the cell query() reads
-        if g.ndim:
-            gk = g[keep]
-            d[keep] = self.values[self.offsets[gk] + np.einsum("ka,ka->k", node, strides[gk])]
-        else:
-            d[keep] = self.values[self.offsets[g] + node @ strides[g]]
-        return d
+@njit(cache=True)
+def _query(values, offsets, shapes, origins, inv_h, frames, points, grid, want_grad):
+    """Per point k: grid[k]'s value at frames[f] @ points[k] (f = grid[k], or 0 with one frame)
+    and, with want_grad, the gradient in the points' frame."""
+    n = points.shape[0]
+    d = np.empty(n)
+    g = np.zeros((n, 3))
+    local = np.empty(3)
+    scratch = np.empty(3 if want_grad else 0)
+    one = frames.shape[0] == 1
+    for k in range(n):
+        gi = grid[k]
+        a = frames[0] if one else frames[gi]
+        px, py, pz = points[k, 0], points[k, 1], points[k, 2]
+        for r in range(3):
+            local[r] = a[r, 0] * px + a[r, 1] * py + a[r, 2] * pz + a[r, 3]
+        d[k] = _trilinear(values, offsets[gi], shapes[gi], origins[gi], inv_h[gi], local[0], local[1], local[2],
+                          scratch)
+        if want_grad and d[k] < FAR:
+            for c in range(3):  # A^T times the grid's gradient
+                g[k, c] = a[0, c] * scratch[0] + a[1, c] * scratch[1] + a[2, c] * scratch[2]
+    return d, g
 
-    def maybe_below(self, points: np.ndarray, level: float, grid: np.ndarray | int = 0) -> np.ndarray:
-        """Ids of the points (P, 3) where :meth:`query` may read below ``level`` (m); at every
-        other point it reads ``level`` or more (by :attr:`node_reach`), so it need not be
-        queried."""
-        reach = self.node_reach[np.asarray(grid, dtype=np.int64)]
-        return np.flatnonzero(self.node_values(points, grid) < level + reach)
+
+@njit(cache=True)
+def _pairs_below(values, offsets, shapes, origins, inv_h, frames, points, centres, radii, level):
+    n_grids, n = frames.shape[0], points.shape[0]
+    cap = 1024
+    out_p = np.empty(cap, np.int64)
+    out_g = np.empty(cap, np.int64)
+    out_d = np.empty(cap)
+    count = 0
+    none = np.empty(0)
+    for gi in range(n_grids):
+        a = frames[gi]
+        cx, cy, cz, r2 = centres[gi, 0], centres[gi, 1], centres[gi, 2], radii[gi] * radii[gi]
+        for k in range(n):
+            px, py, pz = points[k, 0], points[k, 1], points[k, 2]
+            if (px - cx) ** 2 + (py - cy) ** 2 + (pz - cz) ** 2 > r2:
+                continue
+            lx = a[0, 0] * px + a[0, 1] * py + a[0, 2] * pz + a[0, 3]
+            ly = a[1, 0] * px + a[1, 1] * py + a[1, 2] * pz + a[1, 3]
+            lz = a[2, 0] * px + a[2, 1] * py + a[2, 2] * pz + a[2, 3]
+            v = _trilinear(values, offsets[gi], shapes[gi], origins[gi], inv_h[gi], lx, ly, lz, none)
+            if v < level:
+                if count == cap:
+                    cap *= 2
+                    out_p = _grow_int(out_p, cap)
+                    out_g = _grow_int(out_g, cap)
+                    out_d = _grow_float(out_d, cap)
+                out_p[count], out_g[count], out_d[count] = k, gi, v
+                count += 1
+    return out_p[:count].copy(), out_g[:count].copy(), out_d[:count].copy()
+
+
+@njit(cache=True)
+def _grow_int(a, cap):
+    out = np.empty(cap, np.int64)
+    out[:a.shape[0]] = a
+    return out
+
+
+@njit(cache=True)
+def _grow_float(a, cap):
+    out = np.empty(cap)
+    out[:a.shape[0]] = a
+    return out

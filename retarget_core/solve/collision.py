@@ -29,7 +29,6 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..mesh.sdf_grid import SdfGrids
 from ..mesh.surface_points import SurfacePoints
@@ -155,21 +154,17 @@ class ObjectCollision:
         self.level = None  # (K,) per focused point: 0, or -inf where it costs nothing (keep_out); None: all 0
 
     def _sdf(self, points: np.ndarray, object_pose: np.ndarray):
-        inv = np.linalg.inv(object_pose)
-        d, g = self.grids.query(points @ inv[:3, :3].T + inv[:3, 3])
-        return d, g @ inv[:3, :3]  # the gradient in world
+        """Signed distances (K,) m and world gradients (K, 3) at world points (K, 3)."""
+        return self.grids.query_in(np.linalg.inv(object_pose)[None], points, 0)
 
     def _below(self, pose, object_pose: np.ndarray, level: float, among: np.ndarray | None = None):
         """(ids (K,), signed distances (K,) m) of the sample points (of ``among``, default all)
-        whose grid value at pose may be below ``level`` m; every other point reads ``level`` or
-        more (:meth:`SdfGrids.maybe_below`: one gather per point, the query only for these)."""
+        whose grid value at pose is below ``level`` m."""
         x = self.kin.points(pose, self.all)
-        ids = np.arange(len(x)) if among is None else among
-        inv = np.linalg.inv(object_pose)
-        local = x[ids] @ inv[:3, :3].T + inv[:3, 3]
-        near = self.grids.maybe_below(local, level)
-        d, _ = self.grids.query(local[near])
-        return ids[near], d
+        if among is not None:
+            x = x[among]
+        below, d = self.grids.below_in(np.linalg.inv(object_pose)[None], x, 0, level)
+        return (below if among is None else among[below]), d
 
     def focus(self, pose, object_pose: np.ndarray) -> None:
         near, d = self._below(pose, object_pose, FOCUS_MARGIN)
@@ -276,8 +271,8 @@ class ObjectInHand:
         self.parts = parts
         self.grids = grids if grids is not None else part_grids(kin, parts)
         self.part_joint = np.array([kin.rig.joint_index(n) for n in parts.names], dtype=np.int64)
-        self.points = np.asarray(object_vertices, dtype=np.float64)[cube_samples(object_vertices, OBJECT_POINT_SPACING)]
-        self.tree = cKDTree(self.points)  # in the object's frame: which points are near a part
+        self.points = np.ascontiguousarray(
+            np.asarray(object_vertices, dtype=np.float64)[cube_samples(object_vertices, OBJECT_POINT_SPACING)])
         self.grid_centre, self.grid_radius = grid_spheres(self.grids)
         self.item_point = self.item_grid = np.zeros(0, np.int64)
         self.focused_all = True  # until the first focus, which the first evaluation then makes
@@ -291,35 +286,20 @@ class ObjectInHand:
         """The world positions (K, 3) of the sample points ``points`` (K,) at the object's pose."""
         return self.points[points] @ object_pose[:3, :3].T + object_pose[:3, 3]
 
-    def _candidates(self, pose, object_pose: np.ndarray):
-        """(points (K,), grids (K,)) of the items whose point lies within its part's grid
-        sphere at pose; every other item reads FAR. Each sphere is looked up in the object's
-        frame in a k-d tree of the points, so a big object costs only its points near the hand."""
+    def _grid_frames(self, pose) -> np.ndarray:
+        """(G, 4, 4) maps from world into each part grid's frame at pose."""
+        return np.linalg.inv(pose.world[self.part_joint])
+
+    def _below(self, pose, object_pose: np.ndarray, level: float):
+        """(points (K,), grids (K,), signed distances (K,) m) of the items reading below
+        ``level`` m at pose, grid by grid, points ascending (so every run sums alike). Only the
+        object points within a part grid's bounding sphere are read (beyond it, FAR)."""
         world = pose.world[self.part_joint]  # (G, 4, 4)
         centre = np.einsum("gab,gb->ga", world[:, :3, :3], self.grid_centre) + world[:, :3, 3]
         inv = np.linalg.inv(object_pose)
-        found = self.tree.query_ball_point(centre @ inv[:3, :3].T + inv[:3, 3], self.grid_radius)
-        sizes = np.array([len(f) for f in found], dtype=np.int64)
-        if not sizes.sum():
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        points = np.concatenate([np.asarray(f, dtype=np.int64) for f in found])
-        grids = np.repeat(np.arange(len(found), dtype=np.int64), sizes)
-        # the tree hands each sphere's points in no set order: sort, so every run sums alike
-        order = np.lexsort((points, grids))
-        return points[order], grids[order]
-
-    def _local(self, pose, y: np.ndarray, grid: np.ndarray) -> np.ndarray:
-        world = pose.world[self.part_joint[grid]]
-        return np.einsum("kba,kb->ka", world[:, :3, :3], y - world[:, :3, 3])
-
-    def _below(self, pose, object_pose: np.ndarray, level: float):
-        """(points (K,), grids (K,), signed distances (K,) m) of the items that may read below
-        ``level`` m at pose; every other item reads ``level`` or more."""
-        p, g = self._candidates(pose, object_pose)
-        local = self._local(pose, self._world(object_pose, p), g)
-        near = self.grids.maybe_below(local, level, g)
-        d, _ = self.grids.query(local[near], g[near])
-        return p[near], g[near], d
+        from_object = self._grid_frames(pose) @ object_pose  # object frame -> each grid's
+        return self.grids.pairs_below(from_object, self.points, centre @ inv[:3, :3].T + inv[:3, 3],
+                                      self.grid_radius, level)
 
     def focus(self, pose, object_pose: np.ndarray) -> None:
         p, g, d = self._below(pose, object_pose, FOCUS_MARGIN)
@@ -332,10 +312,7 @@ class ObjectInHand:
         """At the focused items: (distances above each item's level (K,) m, world gradients
         (K, 3), world points (K, 3), the joints of the grids' frames (K,))."""
         y = self._world(object_pose, self.item_point)
-        world = pose.world[self.part_joint[self.item_grid]]
-        local = np.einsum("kba,kb->ka", world[:, :3, :3], y - world[:, :3, 3])
-        d, g = self.grids.query(local, self.item_grid)
-        gw = np.einsum("kab,kb->ka", world[:, :3, :3], g)
+        d, gw = self.grids.query_in(self._grid_frames(pose), y, self.item_grid)
         return (d if self.level is None else d - self.level), gw, y, self.part_joint[self.item_grid]
 
     def keep_out(self, pose, object_pose: np.ndarray) -> None:
@@ -465,18 +442,11 @@ class SelfCollision:
     def n_items(self) -> int:
         return len(self.item_point)
 
-    def _local(self, pose, x: np.ndarray, items: np.ndarray):
-        """The items' world points x (K, 3) in their grids' frames (K, 3), and the world
-        transforms of those frames (K, 4, 4)."""
-        world = pose.world[self.part_joint[self.item_grid[items]]]
-        return np.einsum("kba,kb->ka", world[:, :3, :3], x - world[:, :3, 3]), world
-
     def _sdf(self, pose, x: np.ndarray, items: np.ndarray):
         """At the items' world points x (K, 3): distances (K,), world gradients (K, 3), the
         points and the joints of the grids' frames (K,)."""
-        local, world = self._local(pose, x, items)
-        d, g = self.grids.query(local, self.item_grid[items])
-        return d, np.einsum("kab,kb->ka", world[:, :3, :3], g), x, self.part_joint[self.item_grid[items]]
+        d, gw = self.grids.query_in(np.linalg.inv(pose.world[self.part_joint]), x, self.item_grid[items])
+        return d, gw, x, self.part_joint[self.item_grid[items]]
 
     def _near_items(self, pose, x: np.ndarray) -> np.ndarray:
         """Ids of the items whose two parts may touch at pose: the sphere around a part's posed
@@ -496,17 +466,15 @@ class SelfCollision:
 
     def _below(self, pose, level: float, left_out: np.ndarray | None = None):
         """(items (K,), signed distances (K,) m) of the items (those not in ``left_out``, when
-        given) whose grid value at pose may be below ``level`` m; every other item reads
-        ``level`` or more (pair spheres, then :meth:`SdfGrids.maybe_below`)."""
+        given) whose grid value at pose is below ``level`` m (only the pairs whose spheres meet
+        are read)."""
         x = self.kin.points(pose, self.all)
         items = self._near_items(pose, x)
         if left_out is not None:
             items = np.setdiff1d(items, left_out, assume_unique=True)
-        local, _ = self._local(pose, x[self.item_point[items]], items)
-        grid = self.item_grid[items]
-        near = self.grids.maybe_below(local, level, grid)
-        d, _ = self.grids.query(local[near], grid[near])
-        return items[near], d
+        below, d = self.grids.below_in(np.linalg.inv(pose.world[self.part_joint]), x[self.item_point[items]],
+                                       self.item_grid[items], level)
+        return items[below], d
 
     def focus(self, pose) -> None:
         if not self.n_items:
