@@ -125,12 +125,31 @@ class SdfGrids:
         ids = np.flatnonzero(d < level)
         return ids, d[ids]
 
+    def items_below(self, frames: np.ndarray, points: np.ndarray, item_point: np.ndarray, item_grid: np.ndarray,
+                    item_owner: np.ndarray, owner_centres: np.ndarray, owner_radii: np.ndarray,
+                    grid_centres: np.ndarray, grid_radii: np.ndarray, level: float, skip: np.ndarray | None = None):
+        """(items (K,) ascending, distances (K,) m) of the items reading below ``level`` m. An
+        item is point ``item_point[i]`` of ``points`` (N, 3) read in grid ``item_grid[i]``
+        (``frames`` (G, 3, 4) map the points' frame into each grid's); it is read only where the
+        sphere of its owner (``owner_centres`` (O, 3), ``owner_radii`` (O,), by ``item_owner``)
+        meets its grid's (``grid_centres`` (G, 3), ``grid_radii`` (G,), in the points' frame),
+        beyond which the grid reads FAR for every point of the owner; ``skip`` (I,) bool: items
+        left out."""
+        p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        skip = np.zeros(0, np.bool_) if skip is None else np.ascontiguousarray(skip, dtype=np.bool_)
+        return _items_below(*self._tables, _frames(frames), p, item_point, item_grid, item_owner,
+                            np.ascontiguousarray(owner_centres, dtype=np.float64),
+                            np.ascontiguousarray(owner_radii, dtype=np.float64),
+                            np.ascontiguousarray(grid_centres, dtype=np.float64),
+                            np.ascontiguousarray(grid_radii, dtype=np.float64), skip, float(level))
+
     def pairs_below(self, frames: np.ndarray, points: np.ndarray, centres: np.ndarray, radii: np.ndarray,
                     level: float):
         """Every (point, grid) pair whose value is below ``level`` m: points (N, 3) in one frame,
         ``frames`` (G, 3, 4) from it into each grid's; ``centres`` (G, 3) and ``radii`` (G,) m
         bound each grid in the points' frame (beyond it a grid reads FAR). Returns (points (K,),
-        grids (K,), distances (K,) m), grid by grid, points ascending within a grid."""
+        grids (K,), distances (K,) m), grid by grid, points ascending within a grid. The points
+        must be sorted by x (only the slab within a sphere's reach in x is visited)."""
         p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
         return _pairs_below(*self._tables, _frames(frames), p, np.ascontiguousarray(centres, dtype=np.float64),
                             np.ascontiguousarray(radii, dtype=np.float64), float(level))
@@ -215,17 +234,18 @@ def _query(values, offsets, shapes, origins, inv_h, frames, points, grid, want_g
 
 @njit(cache=True)
 def _pairs_below(values, offsets, shapes, origins, inv_h, frames, points, centres, radii, level):
-    n_grids, n = frames.shape[0], points.shape[0]
+    n_grids = frames.shape[0]
     cap = 1024
     out_p = np.empty(cap, np.int64)
     out_g = np.empty(cap, np.int64)
     out_d = np.empty(cap)
     count = 0
     none = np.empty(0)
+    xs = points[:, 0].copy()
     for gi in range(n_grids):
         a = frames[gi]
         cx, cy, cz, r2 = centres[gi, 0], centres[gi, 1], centres[gi, 2], radii[gi] * radii[gi]
-        for k in range(n):
+        for k in range(np.searchsorted(xs, cx - radii[gi]), np.searchsorted(xs, cx + radii[gi], side="right")):
             px, py, pz = points[k, 0], points[k, 1], points[k, 2]
             if (px - cx) ** 2 + (py - cy) ** 2 + (pz - cz) ** 2 > r2:
                 continue
@@ -242,6 +262,71 @@ def _pairs_below(values, offsets, shapes, origins, inv_h, frames, points, centre
                 out_p[count], out_g[count], out_d[count] = k, gi, v
                 count += 1
     return out_p[:count].copy(), out_g[:count].copy(), out_d[:count].copy()
+
+
+@njit(cache=True)
+def _items_below(values, offsets, shapes, origins, inv_h, frames, points, item_point, item_grid, item_owner,
+                 owner_centres, owner_radii, grid_centres, grid_radii, skip, level):
+    n_owner, n_grids = owner_centres.shape[0], grid_centres.shape[0]
+    meets = np.zeros((n_owner, n_grids), np.bool_)
+    for o in range(n_owner):
+        for gi in range(n_grids):
+            dx = owner_centres[o, 0] - grid_centres[gi, 0]
+            dy = owner_centres[o, 1] - grid_centres[gi, 1]
+            dz = owner_centres[o, 2] - grid_centres[gi, 2]
+            reach = owner_radii[o] + grid_radii[gi]
+            meets[o, gi] = dx * dx + dy * dy + dz * dz <= reach * reach
+    n = item_point.shape[0]
+    use_skip = skip.shape[0] == n
+    ids = np.empty(n, np.int64)
+    out_d = np.empty(n)
+    count = 0
+    none = np.empty(0)
+    for i in range(n):
+        gi = item_grid[i]
+        if not meets[item_owner[i], gi] or (use_skip and skip[i]):
+            continue
+        k = item_point[i]
+        a = frames[gi]
+        px, py, pz = points[k, 0], points[k, 1], points[k, 2]
+        lx = a[0, 0] * px + a[0, 1] * py + a[0, 2] * pz + a[0, 3]
+        ly = a[1, 0] * px + a[1, 1] * py + a[1, 2] * pz + a[1, 3]
+        lz = a[2, 0] * px + a[2, 1] * py + a[2, 2] * pz + a[2, 3]
+        v = _trilinear(values, offsets[gi], shapes[gi], origins[gi], inv_h[gi], lx, ly, lz, none)
+        if v < level:
+            ids[count], out_d[count] = i, v
+            count += 1
+    return ids[:count].copy(), out_d[:count].copy()
+
+
+def owner_spheres(points: np.ndarray, owner: np.ndarray, n_owner: int):
+    """The sphere around each owner's points: centres (O, 3) (the points' mean) and radii (O,)
+    m of points (N, 3) owned by ``owner`` (N,) ids in [0, O); 0 and the origin for none."""
+    return _owner_spheres(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(owner, dtype=np.int64),
+                          int(n_owner))
+
+
+@njit(cache=True)
+def _owner_spheres(points, owner, n_owner):
+    centre = np.zeros((n_owner, 3))
+    count = np.zeros(n_owner)
+    for k in range(points.shape[0]):
+        o = owner[k]
+        count[o] += 1.0
+        for c in range(3):
+            centre[o, c] += points[k, c]
+    for o in range(n_owner):
+        if count[o] > 0:
+            for c in range(3):
+                centre[o, c] /= count[o]
+    radius = np.zeros(n_owner)
+    for k in range(points.shape[0]):
+        o = owner[k]
+        r = np.sqrt((points[k, 0] - centre[o, 0]) ** 2 + (points[k, 1] - centre[o, 1]) ** 2
+                    + (points[k, 2] - centre[o, 2]) ** 2)
+        if r > radius[o]:
+            radius[o] = r
+    return centre, radius
 
 
 @njit(cache=True)

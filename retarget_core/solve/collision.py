@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..mesh.sdf_grid import SdfGrids
+from ..mesh.sdf_grid import SdfGrids, owner_spheres
 from ..mesh.surface_points import SurfacePoints
 
 MM = 1000.0
@@ -271,8 +271,9 @@ class ObjectInHand:
         self.parts = parts
         self.grids = grids if grids is not None else part_grids(kin, parts)
         self.part_joint = np.array([kin.rig.joint_index(n) for n in parts.names], dtype=np.int64)
-        self.points = np.ascontiguousarray(
-            np.asarray(object_vertices, dtype=np.float64)[cube_samples(object_vertices, OBJECT_POINT_SPACING)])
+        points = np.asarray(object_vertices, dtype=np.float64)[cube_samples(object_vertices, OBJECT_POINT_SPACING)]
+        # sorted by x, so a part's sphere visits only the slab of points within its reach
+        self.points = np.ascontiguousarray(points[np.argsort(points[:, 0], kind="stable")])
         self.grid_centre, self.grid_radius = grid_spheres(self.grids)
         self.item_point = self.item_grid = np.zeros(0, np.int64)
         self.focused_all = True  # until the first focus, which the first evaluation then makes
@@ -413,11 +414,7 @@ class SelfCollision:
             chosen.append(ids)
             owner.append(np.full(len(ids), p))
         self.vertices = np.concatenate(chosen)
-        self.owner = np.concatenate(owner)
-        sizes = np.array([len(ids) for ids in chosen])
-        self._run_part = np.flatnonzero(sizes)
-        self._run_size = sizes[self._run_part].astype(np.float64)
-        self._runs = (np.cumsum(sizes) - sizes)[self._run_part]
+        self.owner = np.concatenate(owner).astype(np.int64)
         self.all = kin.bind(SurfacePoints.from_vertices(self.vertices, faces))
         # every (sample point, other part's grid) of the non-adjacent pairs, both ways
         pt, gr = [], []
@@ -435,6 +432,8 @@ class SelfCollision:
     def _focus_items(self, items: np.ndarray) -> None:
         """Evaluate only ``items``: their sample points get a binding of their own."""
         self.focused = items
+        self._focused_mask = np.zeros(self.n_items, np.bool_)
+        self._focused_mask[items] = True
         self.points, self.item_local = np.unique(self.item_point[items], return_inverse=True)
         self.binding = self.all.subset(self.points) if len(self.points) else None
 
@@ -448,33 +447,18 @@ class SelfCollision:
         d, gw = self.grids.query_in(np.linalg.inv(pose.world[self.part_joint]), x, self.item_grid[items])
         return d, gw, x, self.part_joint[self.item_grid[items]]
 
-    def _near_items(self, pose, x: np.ndarray) -> np.ndarray:
-        """Ids of the items whose two parts may touch at pose: the sphere around a part's posed
-        sample points x (N, 3) meets the sphere around the other part's grid (rigid in its
-        joint's frame). The others read FAR: most pairs of a hand are far apart."""
-        n = self.parts.n_parts
-        # owner is sorted: each sampled part's points are one run starting at _runs
-        centre = np.zeros((n, 3))
-        centre[self._run_part] = np.add.reduceat(x, self._runs, axis=0) / self._run_size[:, None]
-        radius = np.zeros(n)
-        radius[self._run_part] = np.maximum.reduceat(np.linalg.norm(x - centre[self.owner], axis=1), self._runs)
+    def _below(self, pose, level: float, left_out: bool = False):
+        """(items (K,), signed distances (K,) m) of the items (those not focused, with
+        ``left_out``) whose grid value at pose is below ``level`` m. Only the items whose part's
+        posed points and the other part's grid (rigid in its joint's frame) have meeting spheres
+        are read: most pairs of a hand are far apart."""
+        x = self.kin.points(pose, self.all)
         world = pose.world[self.part_joint]  # (P, 4, 4)
         grid_centre = np.einsum("pab,pb->pa", world[:, :3, :3], self.grid_centre) + world[:, :3, 3]
-        gap = np.linalg.norm(centre[:, None, :] - grid_centre[None, :, :], axis=2)  # (P, P)
-        near = gap <= radius[:, None] + self.grid_radius[None, :]
-        return np.flatnonzero(near[self.item_owner, self.item_grid])
-
-    def _below(self, pose, level: float, left_out: np.ndarray | None = None):
-        """(items (K,), signed distances (K,) m) of the items (those not in ``left_out``, when
-        given) whose grid value at pose is below ``level`` m (only the pairs whose spheres meet
-        are read)."""
-        x = self.kin.points(pose, self.all)
-        items = self._near_items(pose, x)
-        if left_out is not None:
-            items = np.setdiff1d(items, left_out, assume_unique=True)
-        below, d = self.grids.below_in(np.linalg.inv(pose.world[self.part_joint]), x[self.item_point[items]],
-                                       self.item_grid[items], level)
-        return items[below], d
+        centre, radius = owner_spheres(x, self.owner, self.parts.n_parts)
+        return self.grids.items_below(np.linalg.inv(world), x, self.item_point, self.item_grid, self.item_owner,
+                                      centre, radius, grid_centre, self.grid_radius, level,
+                                      self._focused_mask if left_out else None)
 
     def focus(self, pose) -> None:
         if not self.n_items:
@@ -487,7 +471,7 @@ class SelfCollision:
         ``pose`` (those focused stay); True when any was added."""
         if not self.n_items:
             return False
-        items, d = self._below(self.kin._as_pose(pose), FOCUS_MARGIN, left_out=self.focused)
+        items, d = self._below(self.kin._as_pose(pose), FOCUS_MARGIN, left_out=True)
         new = items[d < FOCUS_MARGIN]
         if not len(new):
             return False
@@ -506,7 +490,7 @@ class SelfCollision:
     def missed(self, pose) -> bool:
         if len(self.focused) == self.n_items:
             return False
-        _, d = self._below(self.kin._as_pose(pose), 0.0, left_out=self.focused)
+        _, d = self._below(self.kin._as_pose(pose), 0.0, left_out=True)
         return bool(np.any(d < 0))
 
     def value_and_grad(self, pose, weight: float, want_grad: bool):

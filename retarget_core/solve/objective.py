@@ -228,12 +228,12 @@ class FrameObjective:
         pose, the polish's trial steps), where the focus would cost as much as the value."""
         # every table sample point; the collision terms come after, over all their points
         focused, self.sample_binding = self.sample_binding, self.all_samples
+        pose = self.kin.pose(q)
         try:
             with self.collision_off():
-                value, _ = self.value_and_grad(q, want_grad=False)
+                value, _ = self.value_and_grad(q, want_grad=False, pose=pose)
         finally:
             self.sample_binding = focused
-        pose = self.kin.pose(q)
         if self.object_collision is not None and self.frame.object_pose is not None:
             value += self.object_collision.whole_value(pose, self.frame.object_pose, self.w.lambda_p)
             value += self.object_in_hand.whole_value(pose, self.frame.object_pose, self.w.lambda_p)
@@ -241,11 +241,11 @@ class FrameObjective:
             value += self.self_collision.whole_value(pose, self.w.lambda_sc)
         return value
 
-    def value_and_grad(self, q: np.ndarray, want_grad: bool = True):
-        """(E, dE/dq (D,)) at q (D,)."""
+    def value_and_grad(self, q: np.ndarray, want_grad: bool = True, pose=None):
+        """(E, dE/dq (D,)) at q (D,) (``pose``: the kinematics' pose at q, when computed already)."""
         self.evaluations += 1
         w, kin, data = self.w, self.kin, self.frame
-        pose = kin.pose(q)
+        pose = kin.pose(q) if pose is None else pose
         value = 0.0
         grad = np.zeros(len(q))
 
