@@ -9,11 +9,11 @@ import argparse
 import os
 import sys
 
-from . import annotate, batch, bench, clip, demo, evaluate, retarget, rig, service, transfer
+from . import annotate, batch, bench, clip, demo, evaluate, keypoints, retarget, rig, service, transfer
 from .common import _UsageError
 
 #: The command groups in the order ``handretarget --help`` lists them.
-GROUPS = (demo, rig, clip, annotate, transfer, retarget, batch, evaluate, bench, service)
+GROUPS = (demo, rig, clip, annotate, transfer, retarget, keypoints, batch, evaluate, bench, service)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -40,6 +40,11 @@ def add_commands(sub) -> None:
     xfer.add_argument("--target", default="human_alt", help="demo hand")
     xfer.add_argument("--resolution", type=float, default=0.0025, help="target mesh cell size (m)")
     xfer.set_defaults(func=_cmd_bench_transfer)
+    keys = bench_sub.add_parser("keypoints", help="retarget-keypoints onto a robot hand (ms per frame, root included)")
+    keys.add_argument("--rig", default="installed:leap", help="rig (default: the LEAP hand)")
+    keys.add_argument("--frames", type=int, default=1000)
+    keys.add_argument("--json", action="store_true")
+    keys.set_defaults(func=_cmd_bench_keypoints)
 
 
 #: The stages that solve frames (what the collision terms make dearer).
@@ -100,6 +105,23 @@ def _cmd_bench_retarget(args) -> int:
               f"({off['summary']['solved_contact_distance_median_mm']:.2f} mm at the solved frames)")
         print(f"  solving stages ({', '.join(SOLVE_STAGES)}): {on_s:.1f} s with the collision terms, {off_s:.1f} s "
               f"without -> {on_s / off_s:.2f}x   (target: at most 1.5x)")
+    return 0
+
+
+def _cmd_bench_keypoints(args) -> int:
+    from ..benchmarks.keypoints import run_keypoints_benchmark
+
+    fig = run_keypoints_benchmark(args.rig, n_frames=args.frames)
+    if args.json:
+        print(json.dumps(fig, indent=2))
+        return 0
+    print(f"keypoints benchmark: {fig['frames']} frames at {fig['fps']:g} fps of {len(fig['keypoints'])} keypoints "
+          f"onto {fig['rig']} ({fig['dofs']} DOFs), one process")
+    print(f"  {fig['ms_per_frame']:.2f} ms per frame (whole wall time over frames, root included; target: 2 ms), "
+          f"{fig['evaluations_per_frame']:.1f} evaluations per frame, {fig['frames_retried']} frames solved again "
+          f"from the rest fingers")
+    print(f"  keypoint error at the solved frames (the poses that made them: 0): median {fig['error_median_mm']:.4f} mm, "
+          f"max {fig['error_max_mm']:.4f} mm")
     return 0
 
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from ..errors import InputError
 from ..mesh.surface_points import SurfacePoints
@@ -148,12 +149,17 @@ class Kinematics:
         q = np.asarray(q, dtype=np.float64)
         if q.shape != (self.n_dofs,):
             raise InputError(f"pose must have shape ({self.n_dofs},), got {q.shape}", element="DOF vector")
-        local, before = self._local_chain(q)
-        world = self._world_from_local(local)
-        parent_world = np.concatenate([world, np.eye(4)[None]], axis=0)[self.parent[self.dof_joint]]
-        frames = parent_world @ before
-        dof_axis = np.einsum("dab,db->da", frames[:, :3, :3], self._axes_local)
-        return Pose(q=q, world=world, skin=world @ self.inv_bind, dof_axis=dof_axis, dof_origin=frames[:, :3, 3])
+        if "_fk_tables" not in self.__dict__:
+            # joints parents first; the DOFs' parent joints (-1: the world, for the root's)
+            self._fk_tables = (np.concatenate(self.levels).astype(np.int64), self.parent.astype(np.int64),
+                               self.dof_joint.astype(np.int64), np.ascontiguousarray(self._k),
+                               np.ascontiguousarray(self._k2), np.ascontiguousarray(self._t),
+                               np.ascontiguousarray(self.rest_local), np.ascontiguousarray(self.inv_bind),
+                               np.ascontiguousarray(self._axes_local))
+        order, parent, dof_joint, k, k2, t, rest_local, inv_bind, axes = self._fk_tables
+        world, skin, dof_axis, dof_origin = _forward(np.ascontiguousarray(q), order, parent, dof_joint, k, k2, t,
+                                                     rest_local, inv_bind, axes)
+        return Pose(q=q, world=world, skin=skin, dof_axis=dof_axis, dof_origin=dof_origin)
 
     # ---- binding surface points ------------------------------------------------------------
     def _mesh(self, mesh: str) -> SkinnedMesh:
@@ -340,3 +346,57 @@ class Kinematics:
     def skin(self, pose: Pose | np.ndarray, mesh: str = "surface") -> np.ndarray:
         """(V, 3) posed vertices of ``mesh`` by linear blend skinning."""
         return self.points(pose, self.bind_vertices(mesh))
+
+
+@njit(cache=True)
+def _mul4(a, b, out):
+    for r in range(4):
+        for c in range(4):
+            out[r, c] = a[r, 0] * b[0, c] + a[r, 1] * b[1, c] + a[r, 2] * b[2, c] + a[r, 3] * b[3, c]
+
+
+@njit(cache=True)
+def _forward(q, order, parent, dof_joint, k, k2, t, rest_local, inv_bind, axes):
+    """Forward kinematics at q (D,): world (J, 4, 4), skin = world @ inv_bind (J, 4, 4), and per
+    DOF its world axis (D, 3) and pivot (D, 3). Each joint's local transform is its rest local
+    transform times its DOFs' A(q) = I + sin q K + (1 - cos q) K^2 + q T, in DOF order;
+    ``order`` lists the joints parents first. Compiled: as batched NumPy products per chain level
+    this was ~0.1-0.2 ms a pose, evaluated tens of thousands of times a run."""
+    n_joints, n_dofs = rest_local.shape[0], q.shape[0]
+    local = rest_local.copy()
+    before = np.empty((n_dofs, 4, 4))
+    a = np.empty((4, 4))
+    tmp = np.empty((4, 4))
+    for d in range(n_dofs):
+        j = dof_joint[d]
+        before[d] = local[j]
+        s, c, v = np.sin(q[d]), 1.0 - np.cos(q[d]), q[d]
+        for r in range(4):
+            for col in range(4):
+                a[r, col] = (1.0 if r == col else 0.0) + s * k[d, r, col] + c * k2[d, r, col] + v * t[d, r, col]
+        _mul4(before[d], a, tmp)
+        local[j] = tmp
+    world = np.empty((n_joints, 4, 4))
+    for j in order:
+        if parent[j] < 0:
+            world[j] = local[j]
+        else:
+            _mul4(world[parent[j]], local[j], tmp)
+            world[j] = tmp
+    skin = np.empty((n_joints, 4, 4))
+    for j in range(n_joints):
+        _mul4(world[j], inv_bind[j], tmp)
+        skin[j] = tmp
+    dof_axis = np.empty((n_dofs, 3))
+    dof_origin = np.empty((n_dofs, 3))
+    for d in range(n_dofs):
+        pj = parent[dof_joint[d]]
+        if pj < 0:
+            frame = before[d]
+        else:
+            _mul4(world[pj], before[d], tmp)
+            frame = tmp
+        for r in range(3):
+            dof_axis[d, r] = frame[r, 0] * axes[d, 0] + frame[r, 1] * axes[d, 1] + frame[r, 2] * axes[d, 2]
+            dof_origin[d, r] = frame[r, 3]
+    return world, skin, dof_axis, dof_origin
