@@ -27,6 +27,7 @@ from ..errors import InputError
 from ..mesh.geometry import rigid_fit
 from ..mesh.surface_points import SurfacePoints
 from ..rig.anatomy import set_root_transform
+from ..rig.kinematics import SurfaceBinding
 from .frame_solver import gauss_newton_warm_start
 
 MM = 1000.0
@@ -179,7 +180,14 @@ class KeypointObjective:
     def __init__(self, rig, sites: KeypointSites):
         self.kin = rig.kinematics()
         self.sites = sites
-        self.binding = self.kin.bind(sites.marker_points) if len(sites.marker_points.faces) else None
+        self.binding = None
+        if len(sites.marker_points.faces):
+            # a keypoint is the mean of its marker's points, and skinning is linear in the bound
+            # rest data: the mean's binding is the mean of theirs, one point per keypoint (K
+            # instead of the markers' few hundred; joint keypoints get zero columns)
+            b, avg = self.kin.bind(sites.marker_points), sites.average.T
+            self.binding = SurfaceBinding(y=np.ascontiguousarray(b.y @ avg), z=np.ascontiguousarray(b.z @ avg),
+                                          weight_sub=np.ascontiguousarray(b.weight_sub @ avg))
         self.is_joint = sites.joint >= 0
         self.pull = np.array([d.joint != 0 for d in rig.dofs]) * np.sqrt(SMOOTHING)
         # a prismatic DOF in cm, so its pull is per cm^2 like a rotation's per rad^2
@@ -198,7 +206,7 @@ class KeypointObjective:
         """(K, 3) m: every keypoint at ``pose``."""
         x = np.zeros((len(self.sites.names), 3))
         if self.binding is not None:
-            x += self.sites.average @ self.kin.points(pose, self.binding)
+            x += self.kin.points(pose, self.binding)
         if self.is_joint.any():
             x[self.is_joint] = pose.world[self.sites.joint[self.is_joint], :3, 3]
         return x
@@ -213,8 +221,8 @@ class KeypointObjective:
         n = len(q)
         jk = np.zeros((n, 3, len(x)))
         if self.binding is not None:
-            _, jx = self.kin.points_jacobian(pose, self.binding)  # (M, 3, D) view
-            jk += np.einsum("km,dam->dak", self.sites.average, jx.transpose(2, 1, 0))
+            _, jx = self.kin.points_jacobian(pose, self.binding)  # (K, 3, D) view
+            jk += jx.transpose(2, 1, 0)
         if self.is_joint.any():
             joints = self.sites.joint[self.is_joint]
             jk[:, :, self.is_joint] = self.kin.rigid_points_jacobian(pose, joints, x[self.is_joint])
