@@ -537,8 +537,8 @@ class RetargetConfig:
         (terms on: 2.3-4.4 mm, per-frame mean 0.4-1.6 mm, as the warm start changed). Off, it
         depends on the machine: at 21a7f49 the same run gives 0.99 mm with OpenBLAS's SkylakeX
         kernels and 2.60 mm with its Haswell kernels (``OPENBLAS_CORETYPE``, same AMD EPYC
-        host; the test fails there); and their cost: 1.81x the solving stages at stop 55
-        (3.16x at stop 39, 2.78x before stop 55 compiled the grid reads;
+        host; the test fails there); and their cost: 1.59x the solving stages at stop 55
+        (3.16x at stop 39, 2.78x before stop 55 compiled the grid reads and the kinematics;
         ``handretarget bench --collision``, the goal is 1.5x; the README's "What they cost" has
         where it goes).
 
