@@ -175,8 +175,8 @@ def test_a_control_rate_on_a_hand_that_is_no_robot_is_refused_before_the_run(cli
 # -- imported only when serve/token run and a failed import shown
 
 HANDRETARGET = Path(sys.executable).with_name("handretarget")
-COMMANDS = ["demo", "rig", "clip", "import-grab", "annotate", "transfer", "transfer-demo", "retarget", "batch", "evaluate",
-            "grid", "compare", "bench", "serve", "token"]
+COMMANDS = ["demo", "rig", "clip", "import-grab", "annotate", "transfer", "transfer-demo", "retarget",
+            "retarget-keypoints", "batch", "evaluate", "grid", "compare", "bench", "serve", "token"]
 
 
 def _command_paths(parser=None, path=()):

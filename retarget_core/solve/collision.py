@@ -103,6 +103,11 @@ _CACHE: OrderedDict = OrderedDict()
 _CACHE_SIZE = 8
 
 
+def clear_grid_cache() -> None:
+    """Forget the grids kept in this process (:func:`collision_grids`)."""
+    _CACHE.clear()
+
+
 def _cached(key, build):
     if key in _CACHE:
         _CACHE.move_to_end(key)

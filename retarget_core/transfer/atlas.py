@@ -423,6 +423,12 @@ _CACHE: "OrderedDict[str, Atlas]" = OrderedDict()
 _CACHE_SIZE = 8
 
 
+def clear_memory_cache() -> None:
+    """Forget the atlases kept in this process (:func:`get_atlas`): the next run builds its
+    atlas again (or loads it from a disk cache), as a fresh process would."""
+    _CACHE.clear()
+
+
 def _potpourri3d_version() -> str:
     try:
         from importlib.metadata import version
