@@ -113,6 +113,11 @@ def test_bad_keypoint_files_name_their_problem(tmp_path, leap):
     ok = load_keypoints(_write(tmp_path / "ok.npz", positions=good, names=names, fps=30.0))
     assert ok.names == tuple(names) and ok.fps == 30.0 and load_keypoints(tmp_path / "ok.npz", fps=60.0).fps == 60.0
     rig, annotations = leap
+    from retarget_core.rig.demo_hands import demo_hand
+
+    with pytest.raises(InputError, match="made on rig"):  # annotations of another hand's mesh
+        keypoint_sites(demo_hand("prosthetic_2dof", 0.006), ("IndexFingertip", "PalmRoot", "ThumbFingertip"),
+                       annotations)
     with pytest.raises(InputError, match="IndexFingertip") as err:
         keypoint_sites(rig, ("IndexFingertp", "PalmRoot", "ThumbFingertip"), annotations)
     assert "closest" in str(err.value)

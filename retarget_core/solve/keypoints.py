@@ -139,8 +139,18 @@ def keypoint_sites(rig, names, annotations=None) -> KeypointSites:
     """Resolve keypoint ``names`` on ``rig``: a marker of ``annotations`` (its target points) or
     a joint (link) of the rig, markers first. An unknown name is an InputError listing the
     closest names of both kinds."""
-    from ..transfer.annotations import resolve_points
+    from ..transfer.annotations import _signature_of, resolve_points
 
+    if annotations is not None:
+        # the markers' target points are indices into the mesh the annotations were made on
+        made, here = annotations.target, _signature_of(rig)
+        if (made.vertices, made.faces) != (here.vertices, here.faces) or (
+                made.surface_sha256 is not None and made.surface_sha256 != here.surface_sha256):
+            raise InputError(f"the annotations' markers were made on rig {made.rig!r}'s surface ({made.vertices} "
+                             f"vertices, {made.faces} faces{', another surface hash' if made.vertices == here.vertices else ''}); "
+                             f"rig {rig.name!r} has {here.vertices} vertices, {here.faces} faces: give annotations made "
+                             f"for this rig (handretarget annotate propose), or none to have them proposed",
+                             element="annotations")
     markers = {m.name: m for m in (annotations.markers if annotations is not None else ())}
     joints = {name: i for i, name in enumerate(rig.joint_names)}
     faces, bary, rows, joint, kinds = [], [], [], [], []
