@@ -105,60 +105,33 @@ class Kinematics:
         self._t = trans
         self._axes_local = axes
 
-        # DOFs grouped by their position within their joint, so the joint chains compose with
-        # one batched product per slot.
-        slot = np.zeros(n_dofs, dtype=np.int64)
-        counts = np.zeros(n_joints, dtype=np.int64)
-        for i, j in enumerate(self.dof_joint):
-            slot[i] = counts[j]
-            counts[j] += 1
-        self.slots = [np.nonzero(slot == s)[0] for s in range(int(counts.max(initial=0)))]
-
-        bind_world = self._world_from_local(self._local_chain(rig.rest_pose)[0])
-        self.bind_world = bind_world
-        self.inv_bind = np.linalg.inv(bind_world)
+        # what the compiled forward kinematics reads (:func:`_forward`): joints parents first
+        self._order = np.concatenate(self.levels).astype(np.int64)
+        identity = np.broadcast_to(np.eye(4), (n_joints, 4, 4))
+        self.bind_world = self._forward(rig.rest_pose, identity)[0]
+        self.inv_bind = np.linalg.inv(self.bind_world)
         self._vertex_bindings: dict[str, SurfaceBinding] = {}
 
     # ---- forward kinematics ----------------------------------------------------------------
     def _dof_transforms(self, q: np.ndarray) -> np.ndarray:
+        """(D, 4, 4) each DOF's own transform A(q) = I + sin q K + (1 - cos q) K^2 + q T."""
         s = np.sin(q)[:, None, None]
         c = (1.0 - np.cos(q))[:, None, None]
         return np.eye(4) + s * self._k + c * self._k2 + q[:, None, None] * self._t
 
-    def _local_chain(self, q: np.ndarray):
-        """Local joint transforms (J, 4, 4) and, per DOF, its joint's local frame just before
-        that DOF applies (D, 4, 4)."""
-        a = self._dof_transforms(q)
-        local = self.rest_local.copy()
-        before = np.empty((self.n_dofs, 4, 4))
-        for dofs in self.slots:
-            joints = self.dof_joint[dofs]
-            before[dofs] = local[joints]
-            local[joints] = local[joints] @ a[dofs]
-        return local, before
-
-    def _world_from_local(self, local: np.ndarray) -> np.ndarray:
-        world = np.empty_like(local)
-        world[self.levels[0]] = local[self.levels[0]]
-        for level in self.levels[1:]:
-            world[level] = world[self.parent[level]] @ local[level]
-        return world
+    def _forward(self, q: np.ndarray, inv_bind: np.ndarray):
+        """(world, skin = world @ inv_bind, dof_axis, dof_origin) at q (D,): :func:`_forward`."""
+        return _forward(np.ascontiguousarray(q, dtype=np.float64), self._order, self.parent, self.dof_joint,
+                        np.ascontiguousarray(self._k), np.ascontiguousarray(self._k2), np.ascontiguousarray(self._t),
+                        np.ascontiguousarray(self.rest_local), np.ascontiguousarray(inv_bind),
+                        np.ascontiguousarray(self._axes_local))
 
     def pose(self, q) -> Pose:
         """Evaluate joint transforms and DOF frames at q: (D,) DOF values."""
         q = np.asarray(q, dtype=np.float64)
         if q.shape != (self.n_dofs,):
             raise InputError(f"pose must have shape ({self.n_dofs},), got {q.shape}", element="DOF vector")
-        if "_fk_tables" not in self.__dict__:
-            # joints parents first; the DOFs' parent joints (-1: the world, for the root's)
-            self._fk_tables = (np.concatenate(self.levels).astype(np.int64), self.parent.astype(np.int64),
-                               self.dof_joint.astype(np.int64), np.ascontiguousarray(self._k),
-                               np.ascontiguousarray(self._k2), np.ascontiguousarray(self._t),
-                               np.ascontiguousarray(self.rest_local), np.ascontiguousarray(self.inv_bind),
-                               np.ascontiguousarray(self._axes_local))
-        order, parent, dof_joint, k, k2, t, rest_local, inv_bind, axes = self._fk_tables
-        world, skin, dof_axis, dof_origin = _forward(np.ascontiguousarray(q), order, parent, dof_joint, k, k2, t,
-                                                     rest_local, inv_bind, axes)
+        world, skin, dof_axis, dof_origin = self._forward(q, self.inv_bind)
         return Pose(q=q, world=world, skin=skin, dof_axis=dof_axis, dof_origin=dof_origin)
 
     # ---- binding surface points ------------------------------------------------------------
