@@ -19,7 +19,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from ..errors import InputError
 from ..mesh.surface_points import SurfacePoints
@@ -105,12 +104,25 @@ class Kinematics:
         self._t = trans
         self._axes_local = axes
 
-        # what the compiled forward kinematics reads (:func:`_forward`): joints parents first
+        # joints parents first (the compiled forward kinematics reads it, rig/forward_kernel.py)
         self._order = np.concatenate(self.levels).astype(np.int64)
-        identity = np.broadcast_to(np.eye(4), (n_joints, 4, 4))
-        self.bind_world = self._forward(rig.rest_pose, identity)[0]
+        self.bind_world = self._bind_world(rig.rest_pose)
         self.inv_bind = np.linalg.inv(self.bind_world)
         self._vertex_bindings: dict[str, SurfaceBinding] = {}
+
+    def _bind_world(self, q: np.ndarray) -> np.ndarray:
+        """(J, 4, 4) world transforms at q, joint by joint in NumPy: reading a rig needs only
+        this, once, and must not start the compiler (numba's import and code take ~125 MB,
+        past what the service allows an upload's validation in its tests); :meth:`pose` is the
+        compiled pass, checked against this at the rest pose (tests/test_kinematics.py)."""
+        a = self._dof_transforms(np.asarray(q, dtype=np.float64))
+        local = self.rest_local.copy()
+        for d, j in enumerate(self.dof_joint):
+            local[j] = local[j] @ a[d]
+        world = np.empty_like(local)
+        for j in self._order:
+            world[j] = local[j] if self.parent[j] < 0 else world[self.parent[j]] @ local[j]
+        return world
 
     # ---- forward kinematics ----------------------------------------------------------------
     def _dof_transforms(self, q: np.ndarray) -> np.ndarray:
@@ -120,8 +132,11 @@ class Kinematics:
         return np.eye(4) + s * self._k + c * self._k2 + q[:, None, None] * self._t
 
     def _forward(self, q: np.ndarray, inv_bind: np.ndarray):
-        """(world, skin = world @ inv_bind, dof_axis, dof_origin) at q (D,): :func:`_forward`."""
-        return _forward(np.ascontiguousarray(q, dtype=np.float64), self._order, self.parent, self.dof_joint,
+        """(world, skin = world @ inv_bind, dof_axis, dof_origin) at q (D,)
+        (:func:`~retarget_core.rig.forward_kernel.forward`)."""
+        from .forward_kernel import forward  # numba is imported here, on the first pose
+
+        return forward(np.ascontiguousarray(q, dtype=np.float64), self._order, self.parent, self.dof_joint,
                         np.ascontiguousarray(self._k), np.ascontiguousarray(self._k2), np.ascontiguousarray(self._t),
                         np.ascontiguousarray(self.rest_local), np.ascontiguousarray(inv_bind),
                         np.ascontiguousarray(self._axes_local))
@@ -321,55 +336,3 @@ class Kinematics:
         return self.points(pose, self.bind_vertices(mesh))
 
 
-@njit(cache=True)
-def _mul4(a, b, out):
-    for r in range(4):
-        for c in range(4):
-            out[r, c] = a[r, 0] * b[0, c] + a[r, 1] * b[1, c] + a[r, 2] * b[2, c] + a[r, 3] * b[3, c]
-
-
-@njit(cache=True)
-def _forward(q, order, parent, dof_joint, k, k2, t, rest_local, inv_bind, axes):
-    """Forward kinematics at q (D,): world (J, 4, 4), skin = world @ inv_bind (J, 4, 4), and per
-    DOF its world axis (D, 3) and pivot (D, 3). Each joint's local transform is its rest local
-    transform times its DOFs' A(q) = I + sin q K + (1 - cos q) K^2 + q T, in DOF order;
-    ``order`` lists the joints parents first. Compiled: as batched NumPy products per chain level
-    this was ~0.1-0.2 ms a pose, evaluated tens of thousands of times a run."""
-    n_joints, n_dofs = rest_local.shape[0], q.shape[0]
-    local = rest_local.copy()
-    before = np.empty((n_dofs, 4, 4))
-    a = np.empty((4, 4))
-    tmp = np.empty((4, 4))
-    for d in range(n_dofs):
-        j = dof_joint[d]
-        before[d] = local[j]
-        s, c, v = np.sin(q[d]), 1.0 - np.cos(q[d]), q[d]
-        for r in range(4):
-            for col in range(4):
-                a[r, col] = (1.0 if r == col else 0.0) + s * k[d, r, col] + c * k2[d, r, col] + v * t[d, r, col]
-        _mul4(before[d], a, tmp)
-        local[j] = tmp
-    world = np.empty((n_joints, 4, 4))
-    for j in order:
-        if parent[j] < 0:
-            world[j] = local[j]
-        else:
-            _mul4(world[parent[j]], local[j], tmp)
-            world[j] = tmp
-    skin = np.empty((n_joints, 4, 4))
-    for j in range(n_joints):
-        _mul4(world[j], inv_bind[j], tmp)
-        skin[j] = tmp
-    dof_axis = np.empty((n_dofs, 3))
-    dof_origin = np.empty((n_dofs, 3))
-    for d in range(n_dofs):
-        pj = parent[dof_joint[d]]
-        if pj < 0:
-            frame = before[d]
-        else:
-            _mul4(world[pj], before[d], tmp)
-            frame = tmp
-        for r in range(3):
-            dof_axis[d, r] = frame[r, 0] * axes[d, 0] + frame[r, 1] * axes[d, 1] + frame[r, 2] * axes[d, 2]
-            dof_origin[d, r] = frame[r, 3]
-    return world, skin, dof_axis, dof_origin
